@@ -1,0 +1,72 @@
+"""Texture differentials (pbrt section 10.1): what a texture needs to know about one lookup.
+
+:class:`TextureEvalContext` is pbrt-v4's ``TextureEvalContext`` built from Mitsuba's
+``SurfaceInteraction3f``:
+
+* ``uv`` and the four partials ``du/dx, du/dy, dv/dx, dv/dy`` from ``si.duv_dx``/``si.duv_dy``.
+  Non-finite partials become 0 and finite ones are clamped to ±1e8, as pbrt-v4 does after its
+  least-squares solve (pbrt-v4 commit 0d3b3d73).
+* ``p``, ``dp/dx``, ``dp/dy`` for 3D textures. Mitsuba stores no ``dp/dx``; we reconstruct it as
+  ``dp_du·du/dx + dp_dv·dv/dx``. When ``dp_du``, ``dp_dv`` span the tangent plane this equals the
+  tangent-plane offset pbrt intersects, because the least-squares uv solution reproduces any
+  in-plane vector exactly.
+* ``n`` — the geometric normal (pbrt's ``ctx.n``, used by ``directionmix``).
+
+Mitsuba's own integrators leave ``si.duv_dx = si.duv_dy = 0``: every derivative here is then 0, so
+filters select the finest MIP level, checkerboards point-sample and noise uses all octaves — the
+behaviour of a point sample. ``pbrt_path`` fills them in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+#: pbrt-v4 clamps uv partials to this magnitude.
+PARTIAL_CLAMP = 1e8
+
+
+def sanitize_partial(x: mi.Float) -> mi.Float:
+    """Non-finite → 0, otherwise clamp to ±PARTIAL_CLAMP (pbrt-v4 ``ComputeDifferentials``)."""
+    return dr.select(dr.isfinite(x), dr.clip(x, -PARTIAL_CLAMP, PARTIAL_CLAMP), 0.0)
+
+
+@dataclass
+class TextureEvalContext:
+    """Everything a mapping or texture reads about one lookup (all Dr.Jit values; a PyTree)."""
+
+    p: object        # Point3f, world space
+    dpdx: object     # Vector3f
+    dpdy: object     # Vector3f
+    n: object        # Normal3f, geometric
+    uv: object       # Point2f
+    dudx: object     # Float
+    dudy: object
+    dvdx: object
+    dvdy: object
+
+    @staticmethod
+    def from_si(si: mi.SurfaceInteraction3f) -> 'TextureEvalContext':
+        dudx = sanitize_partial(si.duv_dx.x)
+        dvdx = sanitize_partial(si.duv_dx.y)
+        dudy = sanitize_partial(si.duv_dy.x)
+        dvdy = sanitize_partial(si.duv_dy.y)
+        dpdx = dr.fma(si.dp_du, dudx, si.dp_dv * dvdx)
+        dpdy = dr.fma(si.dp_du, dudy, si.dp_dv * dvdy)
+        return TextureEvalContext(p=mi.Point3f(si.p), dpdx=mi.Vector3f(dpdx),
+                                  dpdy=mi.Vector3f(dpdy), n=mi.Normal3f(si.n),
+                                  uv=mi.Point2f(si.uv), dudx=dudx, dudy=dudy, dvdx=dvdx, dvdy=dvdy)
+
+    @staticmethod
+    def uv_jacobian(si: mi.SurfaceInteraction3f) -> 'TextureEvalContext':
+        """A context whose "x" is u and whose "y" is v.
+
+        Mapping it yields ``ds/du, ds/dv, dt/du, dt/dv`` in the ``dsdx, dsdy, dtdx, dtdy`` slots:
+        the Jacobian used to turn a gradient in (s, t) into one in (u, v) (``eval_1_grad``).
+        """
+        one, zero = mi.Float(1), mi.Float(0)
+        return TextureEvalContext(p=mi.Point3f(si.p), dpdx=mi.Vector3f(si.dp_du),
+                                  dpdy=mi.Vector3f(si.dp_dv), n=mi.Normal3f(si.n),
+                                  uv=mi.Point2f(si.uv), dudx=one, dudy=zero, dvdx=zero, dvdy=one)

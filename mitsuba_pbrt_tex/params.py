@@ -1,0 +1,225 @@
+"""Reading plugin parameters from ``mi.Properties`` with pbrt's names, defaults and clear errors.
+
+Every error is a :class:`PluginError` whose message names the plugin, the parameter, the bad value
+and what would have been accepted, e.g.::
+
+    pbrt_imagemap: parameter "filter": unknown value "cubic"; accepted values: point, bilinear,
+    trilinear, ewa
+
+:meth:`Params.finish` rejects parameters the plugin does not know (typos such as ``amout``) with the
+list of the plugin's parameters, instead of Mitsuba's generic "unreferenced property" message.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Iterable
+
+import drjit as dr
+import mitsuba as mi
+
+
+class PluginError(ValueError):
+    """A plugin parameter has a bad value (the message names plugin, parameter and choices)."""
+
+
+_TYPE_NAMES = {
+    'Float': 'float', 'Integer': 'integer', 'Bool': 'boolean', 'String': 'string',
+    'Color': 'rgb', 'Spectrum': 'spectrum', 'Transform': 'transform', 'Vector': 'vector',
+    'Object': 'nested object', 'Tensor': 'tensor',
+}
+
+
+def _type_name(props: mi.Properties, name: str) -> str:
+    t = str(props.type(name)).split('.')[-1]
+    return _TYPE_NAMES.get(t, t.lower())
+
+
+class Params:
+    """Typed access to one plugin's properties; remembers what it read."""
+
+    def __init__(self, plugin: str, props: mi.Properties):
+        self.plugin = plugin
+        self.props = props
+        self.known: list[str] = []
+
+    # ------------------------------------------------------------------ helpers
+    def error(self, name: str, message: str) -> PluginError:
+        return PluginError(f'{self.plugin}: parameter "{name}": {message}')
+
+    def _note(self, *names: str) -> None:
+        for n in names:
+            if n not in self.known:
+                self.known.append(n)
+
+    def has(self, name: str) -> bool:
+        self._note(name)
+        return name in self.props
+
+    def _kind(self, name: str) -> str:
+        return str(self.props.type(name)).split('.')[-1]
+
+    def _pick(self, name: str, alias: str | None) -> str | None:
+        """Which of ``name``/``alias`` the user gave (error if both)."""
+        self._note(name)
+        if alias is not None:
+            self._note(alias)
+        has_name = name in self.props
+        has_alias = alias is not None and alias in self.props
+        if has_name and has_alias:
+            raise self.error(name, f'given together with its alias "{alias}"; give only one of them')
+        return name if has_name else (alias if has_alias else None)
+
+    # ------------------------------------------------------------------ scalars
+    def float(self, name: str, default: float, *, lo: float | None = None,
+              hi: float | None = None, lo_open: bool = False, alias: str | None = None) -> float:
+        key = self._pick(name, alias)
+        if key is None:
+            return float(default)
+        if self._kind(key) not in ('Float', 'Integer'):
+            raise self.error(key, f'expected a float, got a {_type_name(self.props, key)} '
+                                  f'({self.props[key]!r})')
+        value = float(self.props[key])
+        self._check_range(key, value, lo, hi, lo_open)
+        return value
+
+    def int(self, name: str, default: int, *, lo: int | None = None,
+            hi: int | None = None) -> int:
+        key = self._pick(name, None)
+        if key is None:
+            return int(default)
+        if self._kind(key) == 'Float' and float(self.props[key]).is_integer():
+            value = int(self.props[key])
+        elif self._kind(key) != 'Integer':
+            raise self.error(key, f'expected an integer, got a {_type_name(self.props, key)} '
+                                  f'({self.props[key]!r})')
+        else:
+            value = int(self.props[key])
+        self._check_range(key, value, lo, hi, False)
+        return value
+
+    def bool(self, name: str, default: bool, *, alias: str | None = None) -> bool:
+        key = self._pick(name, alias)
+        if key is None:
+            return bool(default)
+        if self._kind(key) != 'Bool':
+            raise self.error(key, f'expected a boolean (true or false), got a '
+                                  f'{_type_name(self.props, key)} ({self.props[key]!r})')
+        return bool(self.props[key])
+
+    def string(self, name: str, default: str | None, *, alias: str | None = None) -> str | None:
+        key = self._pick(name, alias)
+        if key is None:
+            return default
+        if self._kind(key) != 'String':
+            raise self.error(key, f'expected a string, got a {_type_name(self.props, key)}')
+        return str(self.props[key])
+
+    def enum(self, name: str, default: str, choices: Iterable[str], *, alias: str | None = None,
+             alias_choices: dict[str, str] | None = None) -> str:
+        """A string from ``choices``; the alias (if any) maps through ``alias_choices``."""
+        choices = list(choices)
+        key = self._pick(name, alias)
+        if key is None:
+            return default
+        if self._kind(key) != 'String':
+            raise self.error(key, f'expected a string, got a {_type_name(self.props, key)}; '
+                                  f'accepted values: {", ".join(choices)}')
+        value = str(self.props[key])
+        if key == alias and alias_choices is not None:
+            if value not in alias_choices:
+                raise self.error(key, f'unknown value "{value}"; accepted values: '
+                                      f'{", ".join(alias_choices)}')
+            return alias_choices[value]
+        if value not in choices:
+            raise self.error(key, f'unknown value "{value}"; accepted values: {", ".join(choices)}')
+        return value
+
+    def _check_range(self, key, value, lo, hi, lo_open) -> None:
+        if isinstance(value, float) and not math.isfinite(value):
+            raise self.error(key, f'must be finite, got {value}')
+        if lo is not None and (value < lo or (lo_open and value == lo)):
+            bound = f'> {lo}' if lo_open else f'>= {lo}'
+            raise self.error(key, f'must be {bound}, got {value}')
+        if hi is not None and value > hi:
+            raise self.error(key, f'must be <= {hi}, got {value}')
+
+    def float_or_rgb(self, name: str, default: float) -> float | tuple[float, float, float]:
+        """A float, or an ``rgb`` value as a tuple of three floats."""
+        key = self._pick(name, None)
+        if key is None:
+            return float(default)
+        kind = self._kind(key)
+        if kind in ('Float', 'Integer'):
+            return self.float(name, default)
+        if kind != 'Color':
+            raise self.error(key, f'expected a float or an rgb value, got a '
+                                  f'{_type_name(self.props, key)}')
+        c = self.props[key]
+        rgb = (float(c[0]), float(c[1]), float(c[2]))
+        if not all(math.isfinite(x) for x in rgb):
+            raise self.error(key, f'must be finite, got {list(rgb)}')
+        return rgb
+
+    # ------------------------------------------------------------------ vectors and transforms
+    def vector(self, name: str, default) -> mi.ScalarVector3f:
+        key = self._pick(name, None)
+        if key is None:
+            return mi.ScalarVector3f(default)
+        if self._kind(key) not in ('Vector', 'Color'):
+            raise self.error(key, f'expected a 3D vector (e.g. <vector name="{key}" x="1" y="0" '
+                                  f'z="0"/>), got a {_type_name(self.props, key)}')
+        v = self.props[key]
+        out = mi.ScalarVector3f(float(v[0]), float(v[1]), float(v[2]))
+        if not all(math.isfinite(c) for c in out):
+            raise self.error(key, f'must be finite, got {list(out)}')
+        return out
+
+    def transform(self, name: str, *, alias: str | None = None) -> mi.ScalarTransform4f | None:
+        key = self._pick(name, alias)
+        if key is None:
+            return None
+        if self._kind(key) != 'Transform':
+            raise self.error(key, f'expected a transform, got a {_type_name(self.props, key)}')
+        m = self.props[key].matrix
+        t = mi.ScalarTransform4f(dr.scalar.Matrix4f(m))
+        values = [float(t.matrix[i][j]) for i in range(4) for j in range(4)]
+        if not all(math.isfinite(x) for x in values):
+            raise self.error(key, 'the matrix has non-finite entries')
+        return t
+
+    # ------------------------------------------------------------------ textures
+    def texture(self, name: str, default: float) -> mi.Texture:
+        """A float, an ``rgb``/``spectrum`` value, or a nested texture (as pbrt allows)."""
+        key = self._pick(name, None)
+        if key is None:
+            return self.props.get_unbounded_texture(name, float(default))
+        kind = self._kind(key)
+        if kind == 'Object':
+            obj = self.props[key]
+            if not isinstance(obj, mi.Texture):
+                raise self.error(key, f'expected a float, an rgb value or a nested texture, got '
+                                      f'a nested {type(obj).__name__}')
+            return obj
+        if kind in ('Float', 'Integer', 'Color', 'Spectrum'):
+            if kind in ('Float', 'Integer') and not math.isfinite(float(self.props[key])):
+                raise self.error(key, f'must be finite, got {self.props[key]}')
+            return self.props.get_unbounded_texture(key)
+        raise self.error(key, f'expected a float, an rgb value or a nested texture, got a '
+                              f'{_type_name(self.props, key)}')
+
+    def raw(self, name: str):
+        """Any value (used for runtime-only objects such as tensors)."""
+        key = self._pick(name, None)
+        return None if key is None else self.props[key]
+
+    # ------------------------------------------------------------------ end
+    def finish(self) -> None:
+        """Reject unknown parameters, then mark everything as read for Mitsuba."""
+        unknown = [k for k in self.props.keys() if k not in self.known]
+        if unknown:
+            known = ', '.join(self.known) if self.known else '(none)'
+            raise PluginError(f'{self.plugin}: unknown parameter{"s" if len(unknown) > 1 else ""} '
+                              f'{", ".join(repr(u) for u in unknown)}; accepted parameters: {known}')
+        for k in self.props.keys():
+            self.props.mark_queried(k)

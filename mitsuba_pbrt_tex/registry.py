@@ -1,0 +1,97 @@
+"""Registering the plugins with Mitsuba, once per variant.
+
+Mitsuba keeps a plugin registry per variant, and ``mi.Texture`` is a different (nanobind) class in
+each variant; nanobind classes also admit only one base class. So a plugin is written as a plain
+Python class (a :class:`~mitsuba_pbrt_tex.texture.PbrtTexture` subclass) and
+:func:`variant_class` *flattens* it — copies its methods, base classes first — into a fresh class
+whose single base is the current variant's ``mi.Texture`` (or integrator base).
+:func:`register` does this for every plugin; after the first call it also re-registers
+automatically whenever ``mi.set_variant`` switches variant (calling it again is harmless).
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+
+import mitsuba as mi
+
+from . import variants
+
+TEXTURES = (
+    'pbrt_constant', 'pbrt_scale', 'pbrt_mix', 'pbrt_directionmix', 'pbrt_bilerp', 'pbrt_uv',
+)
+INTEGRATORS = ()
+PLUGINS = TEXTURES + INTEGRATORS
+
+_classes: dict[tuple[str, str], type] = {}
+_lock = threading.Lock()
+_callback_installed = False
+
+
+def plugin_module(name: str):
+    if name not in PLUGINS:
+        raise KeyError(f'unknown plugin {name!r}; plugins: {", ".join(PLUGINS)}')
+    return importlib.import_module(f'mitsuba_pbrt_tex.plugins.{name}')
+
+
+def variant_class(impl: type, base: type) -> type:
+    """A class with single base ``base`` holding ``impl``'s methods (MRO flattened)."""
+    namespace: dict = {}
+    for klass in reversed(impl.__mro__[:-1]):          # object excluded, bases first
+        namespace.update({k: v for k, v in klass.__dict__.items()
+                          if k not in ('__dict__', '__weakref__', '__init__')})
+
+    def __init__(self, props):
+        base.__init__(self, props)
+        self.setup(props)
+
+    namespace['__init__'] = __init__
+    namespace['_pbrt_impl'] = impl
+    namespace['__module__'] = impl.__module__
+    namespace['__qualname__'] = impl.__qualname__
+    return type(impl.__name__, (base,), namespace)
+
+
+def _integrator_base() -> type:
+    if variants.support_problem(mi.variant()) is None:
+        from mitsuba.ad.integrators.common import RBIntegrator
+        return RBIntegrator
+    return mi.SamplingIntegrator
+
+
+def plugin_class(name: str) -> type:
+    """The current variant's class of plugin ``name`` (built once per variant)."""
+    variant = mi.variant()
+    key = (variant, name)
+    with _lock:
+        cls = _classes.get(key)
+        if cls is None:
+            module = plugin_module(name)
+            base = mi.Texture if name in TEXTURES else _integrator_base()
+            cls = _classes[key] = variant_class(module.Plugin, base)
+    return cls
+
+
+def register() -> None:
+    """Register every ``pbrt_*`` plugin for the current Mitsuba variant.
+
+    In unsupported variants (scalar, spectral) the plugins are still registered, so that using
+    one fails with a message explaining why rather than "plugin not found".
+    """
+    global _callback_installed
+    if mi.variant() is None:
+        raise RuntimeError('mitsuba_pbrt_tex.register(): no Mitsuba variant is set; call '
+                           'mi.set_variant("llvm_ad_rgb") (or another variant) first')
+    for name in TEXTURES:
+        mi.register_texture(name, plugin_class(name))
+    for name in INTEGRATORS:
+        mi.register_integrator(name, plugin_class(name))
+    if not _callback_installed:
+        mi.detail.add_variant_callback(_on_variant_change)
+        _callback_installed = True
+
+
+def _on_variant_change(old, new) -> None:
+    if new is not None:
+        register()

@@ -1,0 +1,204 @@
+"""The base of every ``pbrt_*`` texture plugin: evaluation kinds, nesting, traversal, printing.
+
+pbrt has separate Float and Spectrum textures; a Mitsuba texture serves both through ``eval``
+(spectrum), ``eval_1`` (float) and ``eval_3`` (RGB). A plugin here writes its math once, in
+:meth:`PbrtTexture.evaluate`, generically over a :class:`Kind`: nested textures are evaluated in
+the same kind (``eval_1`` of a mix is the mix of the nested ``eval_1`` values), and values the
+texture produces itself (an image's RGB, a noise value) are converted by the kind.
+
+Plugin classes subclass :class:`PbrtTexture` and are turned into real ``mi.Texture`` subclasses per
+variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single base, and
+``mi.Texture`` differs per variant).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from . import variants
+from .differentials import TextureEvalContext
+from .params import Params
+
+
+class Kind:
+    """How values are represented in one evaluation mode."""
+
+    name = 'abstract'
+
+    def nested(self, tex: mi.Texture, si, active):
+        raise NotImplementedError
+
+    def from_rgb(self, rgb: mi.Color3f):
+        raise NotImplementedError
+
+    def from_float(self, value: mi.Float):
+        raise NotImplementedError
+
+    def zero(self):
+        return self.from_float(mi.Float(0))
+
+
+class _Spectrum(Kind):
+    name = 'spectrum'
+
+    def nested(self, tex, si, active):
+        return tex.eval(si, active)
+
+    def from_rgb(self, rgb):
+        return variants.rgb_to_spectrum(rgb)
+
+    def from_float(self, value):
+        return mi.UnpolarizedSpectrum(value)
+
+
+class _Float(Kind):
+    name = 'float'
+
+    def nested(self, tex, si, active):
+        return tex.eval_1(si, active)
+
+    def from_rgb(self, rgb):
+        return mi.luminance(rgb)
+
+    def from_float(self, value):
+        return mi.Float(value)
+
+
+class _RGB(Kind):
+    name = 'rgb'
+
+    def nested(self, tex, si, active):
+        if is_pbrt_texture(tex):
+            return tex.eval_3(si, active)
+        if mi.is_monochromatic:
+            return mi.Color3f(tex.eval_1(si, active))
+        # In RGB variants eval() is Color3f and, unlike eval_3, every built-in implements it
+        # (Mitsuba's checkerboard has no eval_3).
+        return mi.Color3f(tex.eval(si, active))
+
+    def from_rgb(self, rgb):
+        return mi.Color3f(rgb)
+
+    def from_float(self, value):
+        return mi.Color3f(value)
+
+
+SPECTRUM, FLOAT, RGB = _Spectrum(), _Float(), _RGB()
+
+
+def is_pbrt_texture(obj) -> bool:
+    return getattr(type(obj), '_pbrt_impl', None) is not None
+
+
+def uses_differentials(tex) -> bool:
+    """Does ``tex`` (any texture) read ``si.duv_dx``/``si.duv_dy``?
+
+    Our textures answer for themselves (and prepare for it, e.g. an image texture with the
+    ``bilinear`` filter builds its MIP pyramid). Mitsuba's C++ textures never read them. A Python
+    texture of the user's that does not say is assumed to read them.
+    """
+    method = getattr(tex, 'prepare_differentials', None)
+    if method is not None:
+        return bool(method())
+    return type(tex).__module__ not in ('mitsuba', 'builtins') and \
+        not type(tex).__module__.startswith('mitsuba.')
+
+
+class PbrtTexture:
+    """Shared behaviour of all ``pbrt_*`` textures (flattened into ``mi.Texture`` per variant)."""
+
+    #: plugin name, e.g. ``pbrt_mix``
+    NAME = 'pbrt_texture'
+
+    # ------------------------------------------------------------------ construction
+    def setup(self, props: mi.Properties) -> None:
+        variants.require_supported(self.NAME)
+        self._nested: dict[str, mi.Texture] = {}
+        self._values: dict[str, object] = {}
+        self._describe: dict[str, str] = {}
+        p = Params(self.NAME, props)
+        self.configure(p)
+        p.finish()
+
+    def configure(self, p: Params) -> None:
+        """Read parameters and build library objects (override)."""
+
+    def nested_texture(self, p: Params, name: str, default: float) -> mi.Texture:
+        tex = p.texture(name, default)
+        self._nested[name] = tex
+        return tex
+
+    def jit_value(self, name: str, value: float, *, differentiable: bool = True) -> mi.Float:
+        """A float parameter held as a JIT value so it can be traversed and optimised."""
+        v = mi.Float(value)
+        self._values[name] = (v, differentiable)
+        return v
+
+    def describe(self, name: str, text) -> None:
+        self._describe[name] = str(text)
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, si: mi.SurfaceInteraction3f, kind: Kind, active) -> object:
+        raise NotImplementedError
+
+    def context(self, si) -> TextureEvalContext:
+        return TextureEvalContext.from_si(si)
+
+    def eval(self, si, active=True):
+        return self.evaluate(si, SPECTRUM, mi.Bool(active))
+
+    def eval_1(self, si, active=True):
+        return self.evaluate(si, FLOAT, mi.Bool(active))
+
+    def eval_3(self, si, active=True):
+        return self.evaluate(si, RGB, mi.Bool(active))
+
+    def nested_eval(self, name: str, si, kind: Kind, active):
+        return kind.nested(self._nested[name], si, active)
+
+    # ------------------------------------------------------------------ Mitsuba interface
+    def mean(self):
+        return mi.Float(0.5)
+
+    def is_spatially_varying(self) -> bool:
+        return True
+
+    def prepare_differentials(self) -> bool:
+        """Called by ``pbrt_path`` before rendering: does this texture use differentials?"""
+        return any(uses_differentials(t) for t in self._nested.values())
+
+    def traverse(self, cb) -> None:
+        for name, tex in self._nested.items():
+            cb.put(name, tex, mi.ParamFlags.Differentiable)
+        for name, (value, diff) in self._values.items():
+            cb.put(name, value, mi.ParamFlags.Differentiable if diff
+                   else mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys=None) -> None:
+        self.on_parameters_changed(list(keys or []))
+
+    def on_parameters_changed(self, keys: list[str]) -> None:
+        """React to changed parameters (override)."""
+
+    def to_string(self) -> str:
+        parts = [f'{k}={v}' for k, v in self._describe.items()]
+        for name, tex in self._nested.items():
+            parts.append(f'{name}={_short(tex)}')
+        for name, (value, _) in self._values.items():
+            parts.append(f'{name}={_short(value)}')
+        return f'{self.NAME}[' + ', '.join(parts) + ']'
+
+
+def _short(obj) -> str:
+    try:
+        text = str(obj)
+    except Exception:  # pragma: no cover - printing must never fail
+        text = type(obj).__name__
+    text = ' '.join(text.split())
+    return text if len(text) < 80 else text[:77] + '...'
+
+
+def nested_mean(tex: mi.Texture) -> mi.Float:
+    """``tex.mean()`` (a Float) of any texture, built-in or ours."""
+    return mi.Float(tex.mean())

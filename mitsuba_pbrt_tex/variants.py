@@ -1,0 +1,63 @@
+"""Which Mitsuba variants the plugins support, and the colour type each variant returns.
+
+Supported: the JIT variants (``llvm_*``, ``cuda_*``) in RGB and monochrome flavours, polarized or
+not (textures return unpolarized values either way). Refused, at plugin construction and with a
+message that says why:
+
+* scalar variants — every lookup is written as vectorised Dr.Jit code (gathers, symbolic loops);
+  in scalar variants ``mi.Float`` is a Python ``float`` and Mitsuba calls Python textures once per
+  sample, which would be orders of magnitude slower than the built-ins we compete with.
+* spectral variants — image textures would need per-texel spectral upsampling *before*
+  filtering (upsampling is non-linear, so filtered RGB cannot be upsampled afterwards), and the
+  procedural textures compute RGB per lane, which Mitsuba can only upsample from scalar colours.
+  Rather than return subtly wrong spectra we refuse.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+class UnsupportedVariantError(RuntimeError):
+    pass
+
+
+def support_problem(variant: str | None) -> str | None:
+    """Why ``variant`` is unsupported, or None when it is supported."""
+    if variant is None:
+        return 'no Mitsuba variant is set (call mi.set_variant("llvm_ad_rgb") first)'
+    if variant.startswith('scalar'):
+        return ('scalar variants are not supported: the lookups are vectorised Dr.Jit kernels; '
+                'use the JIT variant "%s" instead' % variant.replace('scalar', 'llvm_ad'))
+    if 'spectral' in variant:
+        return ('spectral variants are not supported (filtered RGB cannot be spectrally '
+                'upsampled after filtering); use "%s" or "%s"'
+                % (variant.split('_spectral')[0] + '_rgb', variant.split('_spectral')[0] + '_mono'))
+    return None
+
+
+def require_supported(plugin: str) -> None:
+    problem = support_problem(mi.variant())
+    if problem:
+        raise UnsupportedVariantError(f'{plugin}: variant {mi.variant()!r}: {problem}')
+
+
+def is_mono() -> bool:
+    return mi.is_monochromatic
+
+
+def rgb_to_spectrum(rgb: mi.Color3f) -> mi.UnpolarizedSpectrum:
+    """Linear RGB → the variant's ``UnpolarizedSpectrum`` (RGB as is, mono as luminance)."""
+    if mi.is_monochromatic:
+        return mi.UnpolarizedSpectrum(mi.luminance(rgb))
+    return mi.UnpolarizedSpectrum(rgb)
+
+
+def spectrum_to_rgb(value) -> mi.Color3f:
+    """The variant's spectrum (or a Float) → Color3f (mono values become grey)."""
+    if isinstance(value, mi.Color3f):
+        return value
+    if mi.is_monochromatic or not dr.is_array_v(value) or dr.size_v(value) == 1:
+        return mi.Color3f(value[0] if dr.size_v(value) == 1 else value)
+    return mi.Color3f(value)

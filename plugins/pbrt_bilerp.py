@@ -1,0 +1,38 @@
+"""pbrt_bilerp — bilinear interpolation of four values over (s, t) (pbrt ``BilerpTexture``).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| v00 | float, rgb, texture | 0 | the value at (s, t) = (0, 0) | yes |
+| v01 | float, rgb, texture | 1 | the value at (0, 1) | yes |
+| v10 | float, rgb, texture | 0 | the value at (1, 0) | yes |
+| v11 | float, rgb, texture | 1 | the value at (1, 1) | yes |
+| (2D mapping) | | | mapping parameters, see the mapping table | no |
+
+``(1-s)(1-t)·v00 + (1-s)t·v01 + s(1-t)·v10 + st·v11``; no wrapping, so it extrapolates outside
+[0,1]² (as pbrt).
+"""
+
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.mapping import mapping_2d
+from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
+
+
+class Plugin(PbrtTexture):
+    NAME = 'pbrt_bilerp'
+
+    def configure(self, p):
+        for name, default in (('v00', 0.0), ('v01', 1.0), ('v10', 0.0), ('v11', 1.0)):
+            self.nested_texture(p, name, default)
+        self.mapping = mapping_2d(p)
+        self.describe('mapping', self.mapping.describe())
+
+    def evaluate(self, si, kind, active):
+        st = self.mapping.map(self.context(si)).st
+        s, t = st.x, st.y
+        v = {n: self.nested_eval(n, si, kind, active) for n in ('v00', 'v01', 'v10', 'v11')}
+        return ((1 - s) * (1 - t) * v['v00'] + (1 - s) * t * v['v01']
+                + s * (1 - t) * v['v10'] + s * t * v['v11'])
+
+    def mean(self):
+        return mi.Float(0.25 * sum(nested_mean(self._nested[n]) for n in ('v00', 'v01', 'v10', 'v11')))

@@ -1,0 +1,40 @@
+"""pbrt_constant — the same value everywhere (pbrt ``ConstantTexture``).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| value | float, rgb | 1 | the value (a float gives a grey/float texture) | yes |
+
+``eval_1`` of an rgb value is its luminance (as for every pbrt_* texture and Mitsuba's ``bitmap``).
+"""
+
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.texture import PbrtTexture
+
+
+class Plugin(PbrtTexture):
+    NAME = 'pbrt_constant'
+
+    def configure(self, p):
+        value = p.float_or_rgb('value', 1.0)
+        self.value = mi.Color3f(*value) if isinstance(value, tuple) else mi.Float(value)
+
+    def evaluate(self, si, kind, active):
+        if isinstance(self.value, mi.Color3f):
+            return kind.from_rgb(self.value)
+        return kind.from_float(self.value)
+
+    def mean(self):
+        return mi.luminance(self.value) if isinstance(self.value, mi.Color3f) else mi.Float(self.value)
+
+    def is_spatially_varying(self):
+        return False
+
+    def prepare_differentials(self):
+        return False
+
+    def traverse(self, cb):
+        cb.put('value', self.value, mi.ParamFlags.Differentiable)
+
+    def to_string(self):
+        return f'{self.NAME}[value={self.value}]'

@@ -1,0 +1,37 @@
+"""pbrt_mix — linear interpolation of two textures (pbrt ``MixTexture``).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| tex1 | float, rgb, texture | 0 | the value where amount = 0 | yes |
+| tex2 | float, rgb, texture | 1 | the value where amount = 1 | yes |
+| amount | float, texture | 0.5 | the blend weight (a float texture; not clamped) | yes |
+
+``(1 - amount)·tex1 + amount·tex2``; like pbrt-v4, ``tex1`` is not evaluated where amount = 1 and
+``tex2`` not where amount = 0.
+"""
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, nested_mean
+
+
+class Plugin(PbrtTexture):
+    NAME = 'pbrt_mix'
+
+    def configure(self, p):
+        self.nested_texture(p, 'tex1', 0.0)
+        self.nested_texture(p, 'tex2', 1.0)
+        self.nested_texture(p, 'amount', 0.5)
+
+    def evaluate(self, si, kind, active):
+        amount = self.nested_eval('amount', si, FLOAT, active)
+        use1, use2 = amount != 1, amount != 0
+        t1 = self.nested_eval('tex1', si, kind, active & use1)
+        t2 = self.nested_eval('tex2', si, kind, active & use2)
+        return dr.select(use1, (1 - amount) * t1, 0) + dr.select(use2, amount * t2, 0)
+
+    def mean(self):
+        a = nested_mean(self._nested['amount'])
+        return mi.Float((1 - a) * nested_mean(self._nested['tex1'])
+                        + a * nested_mean(self._nested['tex2']))
