@@ -20,6 +20,7 @@ from . import variants
 
 TEXTURES = (
     'pbrt_constant', 'pbrt_scale', 'pbrt_mix', 'pbrt_directionmix', 'pbrt_bilerp', 'pbrt_uv',
+    'pbrt_imagemap',
 )
 INTEGRATORS = ()
 PLUGINS = TEXTURES + INTEGRATORS

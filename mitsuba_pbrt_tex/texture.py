@@ -3,8 +3,10 @@
 pbrt has separate Float and Spectrum textures; a Mitsuba texture serves both through ``eval``
 (spectrum), ``eval_1`` (float) and ``eval_3`` (RGB). A plugin here writes its math once, in
 :meth:`PbrtTexture.evaluate`, generically over a :class:`Kind`: nested textures are evaluated in
-the same kind (``eval_1`` of a mix is the mix of the nested ``eval_1`` values), and values the
-texture produces itself (an image's RGB, a noise value) are converted by the kind.
+the same kind (``eval_1`` of a mix is the mix of the nested ``eval_1`` values — for a nested
+Mitsuba texture that is its own ``eval_1``: the mean of the RGB for ``srgb`` constants, the
+luminance for ``bitmap``), and values the texture produces itself (an image's RGB, a noise value)
+are converted by the kind: RGB → float is the luminance, as for Mitsuba's ``bitmap``.
 
 Plugin classes subclass :class:`PbrtTexture` and are turned into real ``mi.Texture`` subclasses per
 variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single base, and

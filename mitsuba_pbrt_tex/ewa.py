@@ -1,0 +1,176 @@
+"""Elliptically weighted average filtering (pbrt section 10.4.5; pbrt-v3/v4 ``MIPMap::EWA``).
+
+Exactly pbrt's filter:
+
+1. The two screen-space derivative vectors of (s, t) are the ellipse's axes; the longer is the
+   major axis. If ``minor · maxanisotropy < major`` (and minor > 0) the *minor* axis is lengthened
+   to ``major / maxanisotropy`` (more blur, bounded cost). A zero minor axis means bilinear at
+   level 0.
+2. The level comes from the minor axis: ``lod = max(0, L - 1 + log2(minor))``; the result is the
+   linear blend of the EWA sums at ``floor(lod)`` and ``floor(lod) + 1``.
+3. At one level, in texel units, the implicit ellipse ``A·ds² + B·ds·dt + C·dt² < 1`` has
+   ``A = dt0² + dt1² + 1``, ``B = -2(ds0·dt0 + ds1·dt1)``, ``C = ds0² + ds1² + 1`` normalised by
+   ``1 / (AC - B²/4)``: the ``+1`` texel² keeps at least the nearest texel inside when the ellipse
+   is thinner than a texel (magnification; pbrt-v2 issue #25). Each texel centre inside gets the
+   weight ``LUT[min(int(r²·128), 127)]`` from the 128-entry table ``exp(-2·i/127) - exp(-2)``
+   (a Gaussian with α = 2, truncated to 0 at the border; pbrt indexes with 128 but builds with
+   127, which we keep for identical results), and the result is the weighted average.
+
+Vectorisation: each lane loops over *the texels of its own ellipse*, row by row — for every row
+the two roots of the quadratic give the column span — instead of pbrt's bounding box. Texels the
+bounding box adds are outside the ellipse and have weight 0, so the result is identical while a
+45° 8:1 footprint visits several times fewer texels. Two columns are processed per iteration
+(halving the per-iteration bookkeeping; measured 8% faster than one, while three or four were
+slower). The table weight ``LUT[i]`` is computed as ``exp(-2·i/127) - exp(-2)`` rather than
+gathered (same values to float rounding, no gather). The wrapped row is computed once per row.
+The loop is a ``dr.while_loop`` with the ``max_iterations=-1`` hint (a sum-style loop), so
+reverse-mode AD through it reaches the texels.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .wrap import sanitize_coord, wrap_2d
+
+LUT_SIZE = 128
+ALPHA = 2.0
+#: Texels whose centre is within this distance (texels) outside a row's exact span are still
+#: tested against r² < 1, so rounding in the span computation can never drop a weighted texel.
+SPAN_SLACK = 1e-3
+COLUMNS_PER_STEP = 2
+_EXP_NEG_ALPHA = float(np.float32(np.exp(-ALPHA)))
+
+
+def _finite(x):
+    return dr.select(dr.isfinite(x), x, 0.0)
+
+
+class EWAFilter:
+    """pbrt's EWA over a :class:`~mitsuba_pbrt_tex.mipmap.MIPMap`."""
+
+    def __init__(self, mip, max_anisotropy: float):
+        if not mip.has_pyramid:
+            raise ValueError('EWA needs the MIP pyramid')
+        self.mip = mip
+        self.max_anisotropy = float(max_anisotropy)
+
+    def __call__(self, st, dst0, dst1, active):
+        """``dst0 = (ds/dx, dt/dx)``, ``dst1 = (ds/dy, dt/dy)`` (Vector2f)."""
+        mip = self.mip
+        dst0 = mi.Vector2f(_finite(dst0.x), _finite(dst0.y))
+        dst1 = mi.Vector2f(_finite(dst1.x), _finite(dst1.y))
+        swap = dr.squared_norm(dst0) < dr.squared_norm(dst1)
+        dst0, dst1 = dr.select(swap, dst1, dst0), dr.select(swap, dst0, dst1)
+        major, minor = dr.norm(dst0), dr.norm(dst1)
+
+        clamp = (minor * self.max_anisotropy < major) & (minor > 0)
+        scale = dr.select(clamp, major / (minor * self.max_anisotropy), 1.0)
+        dst1 = dst1 * scale
+        minor = minor * scale
+
+        degenerate = ~(minor > 0)
+        n_levels = mip.n_levels
+        lod = dr.maximum(0.0, mip.level_of(minor))
+        lod = dr.minimum(lod, float(n_levels))              # beyond: the coarsest texel anyway
+        ilod = dr.floor(lod)
+        frac = lod - ilod
+        run = active & ~degenerate
+        v0 = self.level(ilod, st, dst0, dst1, run & (frac < 1))
+        v1 = self.level(ilod + 1, st, dst0, dst1, run & (frac > 0))
+        ewa = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
+        fallback = mip.bilinear(0, st, active & degenerate)
+        return dr.select(degenerate, fallback, ewa)
+
+    def level(self, flevel, st, dst0, dst1, active):
+        """The EWA sum at one (per-lane) level; levels ≥ L give the coarsest texel."""
+        mip = self.mip
+        last = len(mip.sizes) - 1
+        beyond = flevel > last
+        level = mi.UInt32(dr.minimum(flevel, last))
+        view = mip.view(level)
+        w, h = view.size
+
+        s = sanitize_coord(dr.fma(st.x, w, -0.5))
+        t = sanitize_coord(dr.fma(st.y, h, -0.5))
+        ds0, dt0 = dst0.x * w, dst0.y * h
+        ds1, dt1 = dst1.x * w, dst1.y * h
+
+        A = dt0 * dt0 + dt1 * dt1 + 1
+        B = -2 * (ds0 * dt0 + ds1 * dt1)
+        C = ds0 * ds0 + ds1 * ds1 + 1
+        inv_f = dr.rcp(A * C - B * B * 0.25)
+        A, B, C = A * inv_f, B * inv_f, C * inv_f
+
+        det = -B * B + 4 * A * C
+        inv_det = dr.rcp(det)
+        u_ext = 2 * inv_det * dr.safe_sqrt(det * C)
+        v_ext = 2 * inv_det * dr.safe_sqrt(A * det)
+        # Bounded extents: a non-finite footprint (huge derivatives at a coarse level) cannot
+        # produce an endless loop; such lanes are at the coarsest level where 1 texel suffices.
+        limit = 2.0 * max(mip.width, mip.height) + 2
+        u_ext = dr.minimum(_finite(u_ext), limit)
+        v_ext = dr.minimum(_finite(v_ext), limit)
+        s0, s1 = dr.ceil(s - u_ext), dr.floor(s + u_ext)
+        t0, t1 = dr.ceil(t - v_ext), dr.floor(t + v_ext)
+
+        run = active & ~beyond
+        inv_2a = 0.5 * dr.rcp(A)
+        separable = mip.wrap != 'octahedralsphere'
+
+        def start_row(it):
+            """Column span of row ``it`` (roots of the quadratic) and its wrapped row."""
+            tt = it - t
+            disc = (B * tt) * (B * tt) - 4 * A * (C * tt * tt - 1)
+            root = dr.safe_sqrt(disc)
+            lo = dr.maximum(s0, dr.ceil(s + (-B * tt - root) * inv_2a - SPAN_SLACK))
+            hi = dr.minimum(s1, dr.floor(s + (-B * tt + root) * inv_2a + SPAN_SLACK))
+            hi = dr.select(disc >= 0, hi, lo - 1)
+            if separable:
+                wy, _, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap)
+                return lo, hi, mi.Float(wy), valid_y
+            return lo, hi, it, mi.Bool(True)
+
+        T = mip.value_type()
+        it = mi.Float(t0)
+        i_s, s_end, row_y, row_ok = start_row(it)
+
+        def cond(it, i_s, s_end, row_y, row_ok, acc, acc_w):
+            return run & (it <= t1)
+
+        def body(it, i_s, s_end, row_y, row_ok, acc, acc_w):
+            tt = it - t
+            ctt = C * tt * tt
+            btt = B * tt
+            for k in range(COLUMNS_PER_STEP):
+                col = i_s + k
+                ss = col - s
+                r2 = dr.fma(A * ss, ss, dr.fma(btt, ss, ctt))
+                inside = (col <= s_end) & (r2 < 1) & run
+                # pbrt's table entry LUT[min(int(r2·128), 127)], computed instead of gathered
+                bucket = dr.minimum(dr.floor(dr.maximum(r2, 0) * LUT_SIZE), LUT_SIZE - 1)
+                wgt = dr.maximum(dr.exp(bucket * (-ALPHA / (LUT_SIZE - 1))) - _EXP_NEG_ALPHA, 0)
+                if separable:
+                    ix, _, valid = wrap_2d(col, mi.Float(0), w, h, mip.wrap)
+                    texel = view.gather(row_y, ix, inside & row_ok & valid)
+                else:
+                    texel = mip.fetch(view, col, it, inside)
+                acc = dr.select(inside, dr.fma(texel, wgt, acc), acc)
+                acc_w = dr.select(inside, acc_w + wgt, acc_w)
+            # advance: next columns, or the first column of the next row
+            next_row = i_s + COLUMNS_PER_STEP > s_end
+            it = dr.select(next_row, it + 1, it)
+            lo, hi, ny, nok = start_row(it)
+            i_s = dr.select(next_row, lo, i_s + COLUMNS_PER_STEP)
+            s_end = dr.select(next_row, hi, s_end)
+            row_y = dr.select(next_row, ny, row_y)
+            row_ok = dr.select(next_row, nok, row_ok)
+            return it, i_s, s_end, row_y, row_ok, acc, acc_w
+
+        state = (it, i_s, s_end, row_y, row_ok, dr.zeros(T), mi.Float(0))
+        *_, acc, acc_w = dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_ewa')
+        result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1), dr.zeros(T))
+        top = mip.fetch(mi.UInt32(last), mi.Float(0), mi.Float(0), active & beyond)
+        return dr.select(beyond, top, result)

@@ -1,0 +1,64 @@
+"""The four image filters behind one call: ``TextureFilter(tc, active) -> texel value``.
+
+Each filter reads a :class:`~mitsuba_pbrt_tex.mapping.TexCoord2D` (st and its four derivatives)
+and returns a Float (1-channel image) or Color3f (RGB image):
+
+* ``point``/``bilinear`` — one level, chosen by the isotropic footprint width
+  (:func:`~mitsuba_pbrt_tex.mipmap.footprint_width`); level 0 when the texture has no pyramid
+  (see ``pbrt_imagemap``: the pyramid of these two filters is built on request);
+* ``trilinear`` — two levels blended;
+* ``ewa`` — :class:`~mitsuba_pbrt_tex.ewa.EWAFilter`.
+
+:meth:`TextureFilter.gradient` gives d(value)/d(s, t) of the bilinear reconstruction at the level
+the footprint selects (blended between two levels like trilinear for ``trilinear`` and ``ewa``;
+zero for ``point``, as Mitsuba's ``bitmap`` with ``nearest``) — what ``eval_1_grad`` needs.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .ewa import EWAFilter
+from .mipmap import MIPMap, footprint_width
+
+
+class TextureFilter:
+    def __init__(self, mip: MIPMap, kind: str, max_anisotropy: float, width_convention: float):
+        self.mip = mip
+        self.kind = kind
+        self.width_convention = width_convention
+        self.ewa = EWAFilter(mip, max_anisotropy) if kind == 'ewa' else None
+
+    def __call__(self, tc, active):
+        mip = self.mip
+        if self.kind == 'ewa':
+            return self.ewa(tc.st, mi.Vector2f(tc.dsdx, tc.dtdx), mi.Vector2f(tc.dsdy, tc.dtdy),
+                            active)
+        width = footprint_width(tc, self.width_convention)
+        if self.kind == 'trilinear':
+            return mip.trilinear(tc.st, width, active)
+        return mip.filter_single_level(self.kind, tc.st, width, active)
+
+    def gradient(self, tc, active):
+        """(value, d value/ds, d value/dt) of the luminance (or single channel)."""
+        mip = self.mip
+        if self.kind == 'point':
+            v = mip.filter_single_level('point', tc.st, footprint_width(tc, 1.0), active)
+            return _lum(v), mi.Float(0), mi.Float(0)
+        if not mip.has_pyramid:
+            return mip.bilinear_gradient(0, tc.st, active)
+        last = len(mip.sizes) - 1
+        level = dr.clip(mip.level_of(footprint_width(tc, self.width_convention)), 0, last)
+        l0 = dr.floor(level)
+        frac = 0.0 if self.kind == 'bilinear' else level - l0
+        il0 = mi.UInt32(l0)
+        g0 = mip.bilinear_gradient(il0, tc.st, active)
+        if self.kind == 'bilinear':
+            return g0
+        g1 = mip.bilinear_gradient(dr.minimum(il0 + 1, last), tc.st, active & (frac > 0))
+        return tuple(dr.lerp(a, b, frac) for a, b in zip(g0, g1))
+
+
+def _lum(v):
+    return mi.luminance(v) if isinstance(v, mi.Color3f) else v

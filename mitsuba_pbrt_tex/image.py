@@ -1,0 +1,232 @@
+"""Reading image files into linear float32 texels, colour decoding, and a thread-safe cache.
+
+Sources:
+
+* OpenEXR files through the ``OpenEXR`` package (channels ``R,G,B[,A]`` or ``Y[,A]``; half and
+  float pixels become float32 exactly).
+* Every other format Mitsuba reads (PNG, JPEG, HDR, PFM, PPM, TGA, BMP, ...) through ``mi.Bitmap``.
+
+Channels: 1 (``Y``/``YA``) or 3 (``RGB``/``RGBA``/``XYZ``...). Alpha is dropped, as Mitsuba's
+``bitmap`` does (a texture here is a colour or a float; use a separate texture for opacity).
+
+Encodings (pbrt-v4's ``encoding`` parameter; applied to 8- and 16-bit integer images only — float
+images are linear by definition, as in pbrt-v4):
+
+* ``sRGB`` — the sRGB transfer curve. 8-bit texels are decoded through a 256-entry table that is
+  read back from Mitsuba's own ``bitmap`` (Dr.Jit's C++ ``srgb_to_linear`` is a rational
+  approximation, within 4.2e-7 of the exact curve); this makes our texels *identical* to what
+  ``bitmap`` filters. 16-bit texels use the exact curve.
+* ``linear`` — ``v / 255`` (or ``/ 65535``).
+* ``gamma G`` — ``(v / 255)^G``.
+
+Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
+
+Non-finite texels are replaced by 0 with a warning that gives their count.
+Decoded files are cached as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
+path, modification time, size, encoding, variant): Mitsuba constructs plugins on worker threads
+and merges identical ones, so several textures may ask for the same file at once; the cache builds
+each entry once under a per-key lock, and the MIP levels are built once on first request. The
+wrap mode is not part of the key because the pyramid does not depend on it (each coarse texel
+averages texels inside the image; see :mod:`mitsuba_pbrt_tex.mipmap`).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+from dataclasses import dataclass
+
+import mitsuba as mi
+import numpy as np
+
+from .cache import BuildOnceCache
+from .mipmap import Pyramid
+
+
+class ImageError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class Encoding:
+    kind: str            # 'sRGB' | 'linear' | 'gamma'
+    gamma: float = 1.0
+
+    def __str__(self) -> str:
+        return f'gamma {self.gamma:g}' if self.kind == 'gamma' else self.kind
+
+
+ENCODING_CHOICES = ('sRGB', 'linear', 'gamma G (G > 0)')
+_GAMMA_RE = re.compile(r'^gamma\s+([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)$')
+
+
+def parse_encoding(text: str) -> Encoding | None:
+    """``"sRGB"``, ``"linear"`` or ``"gamma 2.2"`` → :class:`Encoding`, None if malformed."""
+    if text == 'sRGB':
+        return Encoding('sRGB')
+    if text == 'linear':
+        return Encoding('linear')
+    m = _GAMMA_RE.match(text.strip())
+    if m and float(m.group(1)) > 0:
+        return Encoding('gamma', float(m.group(1)))
+    return None
+
+
+@dataclass
+class DecodedImage:
+    texels: np.ndarray   # float32, (H, W, C), C in {1, 3}, linear
+    encoding: Encoding   # the encoding actually applied ('linear' for float sources)
+    bit_depth: str       # 'uint8' | 'uint16' | 'float'
+    nonfinite: int       # texels that were replaced by 0
+
+
+# ---------------------------------------------------------------------------------- decoding
+_srgb8_lock = threading.Lock()
+_srgb8_tables: dict[str, np.ndarray] = {}
+
+
+def srgb8_table() -> np.ndarray:
+    """The 256 linear values Mitsuba's ``bitmap`` decodes 8-bit sRGB bytes to (per variant)."""
+    variant = mi.variant()
+    with _srgb8_lock:
+        table = _srgb8_tables.get(variant)
+        if table is None:
+            ramp = np.repeat(np.arange(256, dtype=np.uint8)[None, :], 2, axis=0)[..., None]
+            bmp = mi.Bitmap(ramp, mi.Bitmap.PixelFormat.Y)
+            bmp.set_srgb_gamma(True)
+            tex = mi.load_dict({'type': 'bitmap', 'bitmap': bmp, 'filter_type': 'nearest',
+                                'wrap_mode': 'clamp'})
+            si = mi.SurfaceInteraction3f()
+            si.uv = mi.Point2f((mi.Float(np.arange(256)) + 0.5) / 256.0, 0.25)
+            table = np.array(tex.eval_1(si), dtype=np.float32).reshape(256)
+            _srgb8_tables[variant] = table
+    return table
+
+
+def _srgb_exact(v: np.ndarray) -> np.ndarray:
+    v = v.astype(np.float64)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def decode_integer(raw: np.ndarray, encoding: Encoding) -> np.ndarray:
+    """uint8/uint16 texels → linear float32 under ``encoding``."""
+    if raw.dtype == np.uint8 and encoding.kind == 'sRGB':
+        return srgb8_table()[raw]
+    scale = 255.0 if raw.dtype == np.uint8 else 65535.0
+    v = raw.astype(np.float64) / scale
+    if encoding.kind == 'sRGB':
+        v = _srgb_exact(v)
+    elif encoding.kind == 'gamma':
+        v = v ** encoding.gamma
+    return v.astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------- readers
+def _read_exr(path: str) -> np.ndarray:
+    import OpenEXR
+    try:
+        with OpenEXR.File(path, separate_channels=True) as f:
+            channels = {name: ch.pixels for name, ch in f.channels().items()}
+    except Exception as e:  # the OpenEXR package raises plain exceptions for corrupt files
+        raise ImageError(f'cannot read OpenEXR file "{path}": {e}') from None
+    for names in (('R', 'G', 'B'), ('Y',)):
+        if all(n in channels for n in names):
+            planes = [np.asarray(channels[n], dtype=np.float32) for n in names]
+            return np.stack(planes, axis=-1)
+    raise ImageError(f'OpenEXR file "{path}" has channels {sorted(channels)}; expected R,G,B or Y')
+
+
+def _bitmap_pixels(bmp: mi.Bitmap, what: str) -> tuple[np.ndarray, bool]:
+    """(pixels as stored, is_integer) of a ``mi.Bitmap``; alpha dropped."""
+    pf = mi.Bitmap.PixelFormat
+    fmt = bmp.pixel_format()
+    comp = bmp.component_format()
+    integer = comp in (mi.Struct.Type.UInt8, mi.Struct.Type.UInt16)
+    if fmt in (pf.Y, pf.YA):
+        target = pf.Y
+    elif fmt in (pf.RGB, pf.RGBA):
+        target = pf.RGB
+    elif fmt in (pf.XYZ, pf.XYZA):
+        target, integer = pf.RGB, False
+    else:
+        raise ImageError(f'{what} has pixel format {fmt}; expected Y, YA, RGB or RGBA')
+    if fmt != target or not integer:
+        if integer:
+            bmp = bmp.convert(target, comp, bmp.srgb_gamma())
+        else:
+            bmp = bmp.convert(target, mi.Struct.Type.Float32, False)
+    arr = np.array(bmp, copy=True)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    return arr, integer
+
+
+def decode_bitmap(bmp: mi.Bitmap, encoding: Encoding | None, what: str) -> DecodedImage:
+    """Texels of a ``mi.Bitmap``; ``encoding=None`` means the format's default."""
+    raw, integer = _bitmap_pixels(bmp, what)
+    if not integer:
+        return finish_texels(raw.astype(np.float32), Encoding('linear'), 'float')
+    applied = encoding if encoding is not None else Encoding('sRGB')
+    return finish_texels(decode_integer(raw, applied), applied,
+                         'uint8' if raw.dtype == np.uint8 else 'uint16')
+
+
+def read_image(path: str, encoding: Encoding | None) -> DecodedImage:
+    """Read and decode ``path``; ``encoding=None`` means the format's default."""
+    if not os.path.isfile(path):
+        raise ImageError(f'file "{path}" does not exist')
+    if path.lower().endswith('.exr'):
+        return finish_texels(_read_exr(path), Encoding('linear'), 'float')
+    try:
+        bmp = mi.Bitmap(path)
+    except Exception as e:
+        raise ImageError(f'cannot read image file "{path}": {" ".join(str(e).split())}') from None
+    return decode_bitmap(bmp, encoding, f'image file "{path}"')
+
+
+def finish_texels(texels: np.ndarray, encoding: Encoding, bit_depth: str) -> DecodedImage:
+    texels = np.ascontiguousarray(texels, dtype=np.float32)
+    if texels.ndim != 3 or texels.shape[2] not in (1, 3) or min(texels.shape[:2]) < 1:
+        raise ImageError(f'image has shape {texels.shape}; expected (H, W, 1) or (H, W, 3)')
+    bad = ~np.isfinite(texels)
+    count = int(bad.sum())
+    if count:
+        texels = np.where(bad, np.float32(0), texels)
+    texels.setflags(write=False)
+    return DecodedImage(texels, encoding, bit_depth, count)
+
+
+# ---------------------------------------------------------------------------------- cache
+@dataclass
+class SharedImage:
+    """A decoded file as shared between textures: its :class:`Pyramid` and how it was decoded."""
+
+    pyramid: Pyramid
+    encoding: Encoding
+    bit_depth: str
+    nonfinite: int
+
+
+image_cache = BuildOnceCache()
+
+
+def file_key(path: str) -> tuple:
+    real = os.path.realpath(path)
+    st = os.stat(real)
+    return real, st.st_mtime_ns, st.st_size
+
+
+def load_image(path: str, encoding: Encoding | None) -> SharedImage:
+    """The texels of ``path`` as a shared :class:`Pyramid` (built once per file, encoding and
+    variant; the key includes the modification time, so edited files are re-read)."""
+    if not os.path.isfile(path):
+        raise ImageError(f'file "{path}" does not exist')
+    key = (file_key(path), None if encoding is None else str(encoding), mi.variant())
+
+    def build():
+        img = read_image(path, encoding)
+        return SharedImage(Pyramid(mi.TensorXf(img.texels)), img.encoding, img.bit_depth,
+                           img.nonfinite)
+
+    return image_cache.get(key, build)

@@ -1,0 +1,319 @@
+"""MIP maps (pbrt section 10.4.3): the pyramid, texel fetches, point/bilinear/trilinear filters.
+
+Storage
+-------
+Level 0 is *the user's tensor itself* (``data`` of ``pbrt_imagemap``, float32, shape (H, W, C)),
+so lookups at level 0 differentiate to it exactly as Mitsuba's ``bitmap`` does, whatever else
+happened. Levels 1… are box-filtered from it with Dr.Jit operations (so gradients reach the base
+texels through coarse levels too) and stored back to back in one flat float32 buffer. Memory is
+at most 4/3 of the base level.
+
+Non-power-of-two images
+-----------------------
+pbrt resamples such images up to the next power of two with a Lanczos (windowed sinc) filter
+before building a 2×2 box pyramid. We instead build the pyramid directly: level ``l+1`` has
+``max(1, floor(n/2))`` texels per axis and each of its texels is the exact *area average* of the
+level-``l`` texels it covers (a 2-tap box for even sizes, a 3- or 4-tap box with fractional
+weights for odd sizes). Reasons, measured by ``python -m mitsuba_pbrt_tex bench pyramid``
+(see ``docs/pyramid.md``): the base level stays the original image (bilinear lookups match
+``bitmap`` exactly, while pbrt's resampled level 0 does not); memory stays ≤ 4/3 of the base
+instead of up to 4 × 4/3 (513×513 → 1024×1024); the resampling's ringing (negative lobes, clamped
+at 0 by pbrt) is absent; and the filtered-lookup error against a box-filtered reference is not
+larger. The mean of every level equals the image mean.
+
+Level selection
+---------------
+A filter width ``w`` (in [0,1] texture units) selects level ``log2(w · max(W, H))``: level 0 when
+the footprint is one base texel. For power-of-two images this is pbrt's ``L - 1 + log2(w)``.
+
+Filters here (EWA lives in :mod:`mitsuba_pbrt_tex.ewa`):
+
+* ``point`` — the texel containing (s, t) at the selected level: ``floor(s·w_l)``, Mitsuba's
+  ``nearest`` rule (pbrt-v4 rounds ``s·w - 0.5``; the two differ only exactly on texel edges).
+* ``bilinear`` — bilinear interpolation at the selected level (pbrt-v4), texel centres at
+  ``(i + 0.5)/w``, with Dr.Jit's operation order so level 0 matches ``bitmap`` bit for bit.
+* ``trilinear`` — linear blend of bilinear lookups at the two levels around the selected one.
+  *Fix of pbrt-v4*: pbrt-v4 returns level 0 unblended for every level < 1 (a jump at level 1); we
+  blend between levels 0 and 1 like pbrt-v3.
+
+Footprint width (``trilinearwidth``): pbrt-v3 uses ``w = max(|ds/dx|, |dt/dx|, |ds/dy|, |dt/dy|)``
+(after PR #275), pbrt-v4 twice that. The default is chosen by measured error (see
+``docs/benchmark.md``); both are available.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .wrap import sanitize_coord, wrap_2d
+
+FILTERS = ('point', 'bilinear', 'trilinear', 'ewa')
+WIDTH_CONVENTIONS = {'v3': 1.0, 'v4': 2.0}
+
+
+# ------------------------------------------------------------------------------------ pyramid
+def level_sizes(width: int, height: int) -> list[tuple[int, int]]:
+    """Sizes of all levels: halve (floor) each axis, never below 1, until 1×1."""
+    sizes = [(width, height)]
+    while sizes[-1] != (1, 1):
+        w, h = sizes[-1]
+        sizes.append((max(1, w // 2), max(1, h // 2)))
+    return sizes
+
+
+def box_taps(n: int, n2: int, ntaps: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Area-average weights from ``n`` texels down to ``n2``: (indices, weights), each (ntaps, n2).
+
+    Output texel i covers ``[i·n/n2, (i+1)·n/n2)`` of the input; weight = overlap / (n/n2).
+    """
+    idx = np.zeros((ntaps, n2), dtype=np.uint32)
+    wts = np.zeros((ntaps, n2), dtype=np.float64)
+    r = n / n2
+    for i in range(n2):
+        a, b = i * r, (i + 1) * r
+        for k, j in enumerate(range(int(math.floor(a)), min(n, int(math.ceil(b))))):
+            idx[k, i] = j
+            wts[k, i] = (min(b, j + 1) - max(a, j)) / r
+    return idx, wts.astype(np.float32)
+
+
+def _downsample(src: mi.Float, w: int, h: int, c: int, axis: int, n2: int) -> mi.Float:
+    """Area-average ``src`` (flat (h, w, c)) along x (axis 0) or y (axis 1) to ``n2`` texels."""
+    n = w if axis == 0 else h
+    idx, wts = box_taps(n, n2)
+    used = int(np.max(np.count_nonzero(wts, axis=0)))
+    ow, oh = (n2, h) if axis == 0 else (w, n2)
+    o = dr.arange(mi.UInt32, ow * oh * c)
+    ch = o % c
+    texel = o // c
+    oy = texel // ow
+    ox = texel - oy * ow
+    i = ox if axis == 0 else oy
+    acc = mi.Float(0)
+    for k in range(used):
+        tap = dr.gather(mi.UInt32, mi.UInt32(idx[k]), i)
+        wt = dr.gather(mi.Float, mi.Float(wts[k]), i)
+        sx, sy = (tap, oy) if axis == 0 else (ox, tap)
+        acc = dr.fma(wt, dr.gather(mi.Float, src, (sy * w + sx) * c + ch), acc)
+    return acc
+
+
+def build_upper_levels(base: mi.Float, width: int, height: int, channels: int):
+    """Levels 1… of the pyramid as one flat buffer, plus their sizes and texel offsets."""
+    sizes = level_sizes(width, height)
+    parts, offsets, offset = [], [0], 0
+    cur, (w, h) = base, sizes[0]
+    for (w2, h2) in sizes[1:]:
+        if w2 != w:
+            cur = _downsample(cur, w, h, channels, 0, w2)
+        if h2 != h:
+            cur = _downsample(cur, w2, h, channels, 1, h2)
+        dr.eval(cur)
+        offsets.append(offset)
+        offset += w2 * h2
+        parts.append(cur)
+        w, h = w2, h2
+    upper = dr.concat(parts) if parts else mi.Float()
+    return upper, sizes, offsets
+
+
+# ------------------------------------------------------------------------------------ MIP map
+class Levels:
+    """Levels 1… of a pyramid: one flat buffer, their sizes, and per-level lookup tables."""
+
+    def __init__(self, base: mi.Float, width: int, height: int, channels: int):
+        self.upper, self.sizes, offsets = build_upper_levels(base, width, height, channels)
+        self.w = mi.Float([s[0] for s in self.sizes])
+        self.h = mi.Float([s[1] for s in self.sizes])
+        self.off = mi.UInt32(offsets)
+
+
+class Pyramid:
+    """The texels of one image: level 0 is ``tensor`` itself (read at lookup time, so enabling
+    gradients on it is always seen); :meth:`build` adds the coarser :class:`Levels`."""
+
+    def __init__(self, tensor: mi.TensorXf):
+        if len(tensor.shape) != 3 or tensor.shape[2] not in (1, 3) or min(tensor.shape[:2]) < 1:
+            raise ValueError(f'expected an (H, W, 1|3) tensor, got shape {tuple(tensor.shape)}')
+        self.tensor = tensor
+        self.height, self.width, self.channels = (int(s) for s in tensor.shape)
+        self.levels: Levels | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def base(self) -> mi.Float:
+        return self.tensor.array
+
+    @property
+    def built(self) -> bool:
+        return self.levels is not None
+
+    @property
+    def sizes(self):
+        return self.levels.sizes if self.levels is not None else [(self.width, self.height)]
+
+    def build(self) -> 'Pyramid':
+        with self._lock:
+            if self.levels is None:
+                self.levels = Levels(self.base, self.width, self.height, self.channels)
+        return self
+
+    def share_levels(self, other: 'Pyramid') -> None:
+        """Use ``other``'s levels (``other`` must hold the same texels)."""
+        self.levels = other.build().levels
+
+    def nbytes(self) -> int:
+        n = dr.width(self.base) + (dr.width(self.levels.upper) if self.built else 0)
+        return 4 * n
+
+
+class MIPMap:
+    """A :class:`Pyramid` seen through a wrap mode: fetches and point/bilinear/trilinear."""
+
+    def __init__(self, pyramid: Pyramid, wrap: str):
+        self.pyr = pyramid
+        self.wrap = wrap
+        self.width, self.height = pyramid.width, pyramid.height
+        self.channels = pyramid.channels
+
+    # -------------------------------------------------------------------- structure
+    @property
+    def has_pyramid(self) -> bool:
+        return self.pyr.built
+
+    @property
+    def sizes(self):
+        return self.pyr.sizes
+
+    @property
+    def n_levels(self) -> int:
+        """Levels a width can select (pbrt's L), whether or not the pyramid is built."""
+        return 1 + int(math.floor(math.log2(max(self.width, self.height))))
+
+    def value_type(self):
+        return mi.Color3f if self.channels == 3 else mi.Float
+
+    # -------------------------------------------------------------------- per-lane level data
+    def level_size(self, level):
+        """(w, h) as Floats for a per-lane level (UInt32), or Python floats for level 0."""
+        return self.view(level).size
+
+    def view(self, level) -> 'LevelView':
+        return LevelView(self, level)
+
+    def fetch(self, level, x, y, active):
+        """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here)."""
+        view = level if isinstance(level, LevelView) else self.view(level)
+        w, h = view.size
+        ix, iy, valid = wrap_2d(x, y, w, h, self.wrap)
+        return view.gather(iy, ix, active & valid)
+
+    # -------------------------------------------------------------------- filters at one level
+    def point(self, level, st, active):
+        view = self.view(level)
+        w, h = view.size
+        x = dr.floor(sanitize_coord(st.x * w))
+        y = dr.floor(sanitize_coord(st.y * h))
+        return self.fetch(view, x, y, active)
+
+    def _corners(self, level, st, active):
+        """The 4 texels around st (order (0,0), (1,0), (0,1), (1,1)) and the weights."""
+        view = self.view(level)
+        w, h = view.size
+        px = sanitize_coord(dr.fma(st.x, w, -0.5))
+        py = sanitize_coord(dr.fma(st.y, h, -0.5))
+        x0, y0 = dr.floor(px), dr.floor(py)
+        wx1, wy1 = px - x0, py - y0
+        texels = [self.fetch(view, x0 + bx, y0 + by, active) for by in (0, 1) for bx in (0, 1)]
+        return texels, (1 - wx1, wx1), (1 - wy1, wy1), (w, h)
+
+    def bilinear(self, level, st, active):
+        texels, wx, wy, _ = self._corners(level, st, active)
+        out = None
+        for (bx, by), v in zip(((0, 0), (1, 0), (0, 1), (1, 1)), texels):
+            weight = wx[bx] * wy[by]          # Dr.Jit's texture: same products, same fma order
+            out = v * weight if out is None else dr.fma(v, weight, out)
+        return out
+
+    def bilinear_gradient(self, level, st, active):
+        """(f, df/ds, df/dt) of the bilinear reconstruction of the luminance (or channel)."""
+        texels, wx, wy, (w, h) = self._corners(level, st, active)
+        f00, f10, f01, f11 = (mi.luminance(v) if self.channels == 3 else v for v in texels)
+        f = (f00 * wx[0] + f10 * wx[1]) * wy[0] + (f01 * wx[0] + f11 * wx[1]) * wy[1]
+        dfdx = wy[0] * (f10 - f00) + wy[1] * (f11 - f01)
+        dfdy = wx[0] * (f01 - f00) + wx[1] * (f11 - f10)
+        return f, dfdx * w, dfdy * h
+
+    # -------------------------------------------------------------------- level selection
+    def level_of(self, width):
+        """Continuous level for a filter width in texture units (pbrt: L-1 + log2 width)."""
+        return dr.log2(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
+
+    def filter_single_level(self, kind: str, st, width, active):
+        """``point`` or ``bilinear`` at the level ``width`` selects (pbrt-v4)."""
+        lookup = self.point if kind == 'point' else self.bilinear
+        if not self.has_pyramid:
+            return lookup(0, st, active)
+        last = len(self.sizes) - 1
+        level = self.level_of(width)
+        ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last))
+        return lookup(ilevel, st, active)
+
+    def trilinear(self, st, width, active):
+        if not self.has_pyramid:
+            return self.bilinear(0, st, active)
+        last = len(self.sizes) - 1
+        level = dr.clip(self.level_of(width), 0, last)
+        l0 = dr.minimum(dr.floor(level), max(last - 1, 0))
+        frac = dr.clip(level - l0, 0, 1)
+        il0 = mi.UInt32(l0)
+        il1 = dr.minimum(il0 + 1, last)
+        v0 = self.bilinear(il0, st, active & (frac < 1))
+        v1 = self.bilinear(il1, st, active & (frac > 0))
+        return dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
+
+
+class LevelView:
+    """Where the texels of one level live, for a static level 0 or a per-lane level (UInt32).
+
+    Computed once per lookup (size, offset) and reused by every tap.
+    """
+
+    def __init__(self, mip: MIPMap, level):
+        self.mip = mip
+        pyr = mip.pyr
+        self.single = isinstance(level, int) or len(pyr.sizes) == 1
+        if self.single:
+            if isinstance(level, int) and level != 0:
+                raise ValueError('only level 0 can be static')
+            self.size = (float(mip.width), float(mip.height))
+        else:
+            lv = pyr.levels
+            self.size = (dr.gather(mi.Float, lv.w, level), dr.gather(mi.Float, lv.h, level))
+            self.is0 = level == 0
+            self.off = dr.gather(mi.UInt32, lv.off, level)
+            self.iw = mi.UInt32(self.size[0])
+
+    def gather(self, iy, ix, active):
+        """Texel at wrapped integer (ix, iy)."""
+        T = self.mip.value_type()
+        pyr = self.mip.pyr
+        if self.single:
+            return dr.gather(T, pyr.base, mi.UInt32(iy) * self.mip.width + mi.UInt32(ix), active)
+        iy, ix = mi.UInt32(iy), mi.UInt32(ix)
+        v0 = dr.gather(T, pyr.base, iy * self.mip.width + ix, active & self.is0)
+        v1 = dr.gather(T, pyr.levels.upper, dr.fma(iy, self.iw, ix + self.off),
+                       active & ~self.is0)
+        return dr.select(self.is0, v0, v1)
+
+
+def footprint_width(tc, convention: float):
+    """pbrt's isotropic filter width from the four derivatives (times 1 or 2, see module doc)."""
+    w = dr.maximum(dr.maximum(dr.abs(tc.dsdx), dr.abs(tc.dtdx)),
+                   dr.maximum(dr.abs(tc.dsdy), dr.abs(tc.dtdy)))
+    return convention * dr.select(dr.isfinite(w), w, 0.0)

@@ -1,0 +1,72 @@
+"""Wrap modes: map integer texel indices outside ``[0, res)`` back inside (pbrt section 10.4.1).
+
+pbrt and Mitsuba both wrap *integer texel indices per tap* (not the continuous coordinate), so a
+bilinear tap straddling the edge reads the texel on the other side (repeat), the edge texel
+(clamp), its mirror image (mirror) or zero (black). We do the same for every filter and level.
+
+Modes: ``repeat`` (Euclidean modulo), ``clamp``, ``black`` (zero outside; returned as a validity
+mask), ``mirror`` (reflection with the edge texel repeated — Mitsuba's/OpenImageIO's mirror:
+…, 1, 0, 0, 1, …, w-1, w-1, w-2, …) and ``octahedralsphere`` (pbrt-v4: crossing the left/right edge
+flips y, crossing the top/bottom edge flips x, for octahedral environment maps; indices still
+outside after that one reflection are clamped, which pbrt leaves undefined).
+
+The arithmetic is done on float-valued integers (exact below 2^24, guaranteed by the callers'
+coordinate clamp) because per-lane integer division does not vectorise on CPUs.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+WRAP_MODES = ('repeat', 'black', 'clamp', 'mirror', 'octahedralsphere')
+
+#: Texel coordinates are clamped to this magnitude before wrapping (keeps every integer exact
+#: in float32 and in int32; far outside [0,1] only the wrap matters anyway).
+COORD_LIMIT = float(2 ** 22)
+
+
+def _mod(x, n):
+    """Euclidean ``x mod n`` for float-valued integers x and n > 0."""
+    m = x - dr.floor(x / n) * n
+    m = dr.select(m < 0, m + n, m)
+    return dr.select(m >= n, m - n, m)
+
+
+def wrap_1d(x, n, mode: str):
+    """Wrap float-valued integer ``x`` into ``[0, n)`` (not for black/octahedral)."""
+    if mode == 'repeat':
+        return _mod(x, n)
+    if mode == 'clamp' or mode == 'black':
+        return dr.clip(x, 0, n - 1)
+    if mode == 'mirror':
+        m = _mod(x, 2 * n)
+        return dr.select(m >= n, 2 * n - 1 - m, m)
+    raise ValueError(mode)
+
+
+def wrap_2d(x, y, w, h, mode: str):
+    """Wrap float-valued integer texel coordinates; returns ``(x, y, valid)`` as Int32/Int32/Bool.
+
+    ``valid`` is False only for ``black`` taps outside the image (their value is 0).
+    """
+    valid = mi.Bool(True)
+    if mode == 'black':
+        valid = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        x, y = dr.clip(x, 0, w - 1), dr.clip(y, 0, h - 1)
+    elif mode == 'octahedralsphere':
+        left, right = x < 0, x >= w
+        x = dr.select(left, -x, dr.select(right, 2 * w - 1 - x, x))
+        y = dr.select(left | right, h - 1 - y, y)
+        top, bottom = y < 0, y >= h
+        x = dr.select(top | bottom, w - 1 - x, x)
+        y = dr.select(top, -y, dr.select(bottom, 2 * h - 1 - y, y))
+        x, y = dr.clip(x, 0, w - 1), dr.clip(y, 0, h - 1)
+    else:
+        x, y = wrap_1d(x, w, mode), wrap_1d(y, h, mode)
+    return mi.Int32(x), mi.Int32(y), valid
+
+
+def sanitize_coord(x):
+    """NaN/inf → 0, and clamp to ±COORD_LIMIT (texel units)."""
+    return dr.clip(dr.select(dr.isfinite(x), x, 0.0), -COORD_LIMIT, COORD_LIMIT)

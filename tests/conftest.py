@@ -1,0 +1,58 @@
+"""Shared fixtures: the test variant (llvm_ad_rgb), plugin registration, small helpers."""
+
+import os
+
+import pytest
+
+import mitsuba_pbrt_tex as mpt
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+VARIANT = os.environ.get('MITSUBA_PBRT_TEX_TEST_VARIANT', 'llvm_ad_rgb')
+mi.set_variant(VARIANT)
+mpt.register()
+
+
+@pytest.fixture(autouse=True)
+def _variant():
+    """Every test starts in the test variant with the plugins registered."""
+    if mi.variant() != VARIANT:
+        mi.set_variant(VARIANT)
+    mpt.register()
+    yield
+
+
+def make_si(uv, duv_dx=None, duv_dy=None, p=None, n=None, dp_du=None, dp_dv=None):
+    """A SurfaceInteraction3f with the given per-lane values (numpy arrays or lists)."""
+    uv = np.asarray(uv, dtype=np.float64)
+    count = uv.shape[0]
+    si = dr.zeros(mi.SurfaceInteraction3f, count)
+    si.uv = mi.Point2f(uv[:, 0], uv[:, 1])
+    if duv_dx is not None:
+        d = np.asarray(duv_dx, dtype=np.float64)
+        si.duv_dx = mi.Vector2f(d[:, 0], d[:, 1])
+    if duv_dy is not None:
+        d = np.asarray(duv_dy, dtype=np.float64)
+        si.duv_dy = mi.Vector2f(d[:, 0], d[:, 1])
+    for name, value, T in (('p', p, mi.Point3f), ('n', n, mi.Normal3f),
+                           ('dp_du', dp_du, mi.Vector3f), ('dp_dv', dp_dv, mi.Vector3f)):
+        if value is not None:
+            v = np.broadcast_to(np.asarray(value, dtype=np.float64), (count, 3))
+            setattr(si, name, T(v[:, 0], v[:, 1], v[:, 2]))
+    if n is None:
+        si.n = mi.Normal3f(0, 0, 1)
+    return si
+
+
+def A(x):
+    """Dr.Jit array → numpy with lanes first: Float → (n,), Color3f/Point3f → (n, 3)."""
+    a = np.array(x)
+    if dr.is_array_v(x) and dr.depth_v(x) > 1 and a.ndim == 2:
+        a = a.T
+    return a
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

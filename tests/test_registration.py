@@ -1,0 +1,105 @@
+"""Registration per variant, loading every plugin from dict / XML string / XML file, variants."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_pbrt_tex as mpt
+from conftest import A, VARIANT, make_si
+from plugin_cases import CASES
+
+
+def test_every_texture_plugin_has_a_case():
+    assert set(CASES) == set(mpt.TEXTURES)
+
+
+def _lookup_si(n=64):
+    rng = np.random.default_rng(7)
+    return make_si(rng.uniform(-0.5, 1.5, (n, 2)), duv_dx=np.full((n, 2), 0.01),
+                   duv_dy=np.full((n, 2), -0.004), p=rng.normal(size=(n, 3)),
+                   n=[0, 0, 1], dp_du=[1, 0, 0], dp_dv=[0, 1, 0])
+
+
+@pytest.mark.parametrize('name', sorted(CASES))
+def test_dict_xml_and_file_loading_agree(name, tmp_path):
+    params, xml = CASES[name]
+    si = _lookup_si()
+    from_dict = mi.load_dict({'type': name, **params})
+    text = f'<texture version="3.0.0" type="{name}">{xml}</texture>'
+    from_string = mi.load_string(text)
+    path = tmp_path / 'tex.xml'
+    path.write_text(text)
+    from_file = mi.load_file(str(path))
+    ref = A(from_dict.eval(si))
+    assert np.isfinite(ref).all()
+    for other in (from_string, from_file):
+        np.testing.assert_array_equal(A(other.eval(si)), ref)
+        np.testing.assert_array_equal(A(other.eval_1(si)), A(from_dict.eval_1(si)))
+        np.testing.assert_array_equal(A(other.eval_3(si)), A(from_dict.eval_3(si)))
+    # the Mitsuba interface
+    assert isinstance(from_dict.to_string(), str) and name in str(from_dict)
+    assert np.isfinite(float(dr.mean(from_dict.mean(), axis=None)[0]))
+    assert isinstance(from_dict.is_spatially_varying(), bool)
+    mi.traverse(from_dict)
+
+
+def test_plugins_in_a_scene_render_with_path():
+    scene = mi.load_dict({
+        'type': 'scene', 'integrator': {'type': 'path'},
+        'sensor': {'type': 'perspective', 'film': {'type': 'hdrfilm', 'width': 16, 'height': 16},
+                   'to_world': mi.ScalarTransform4f().look_at([0, 0, 4], [0, 0, 0], [0, 1, 0])},
+        'emitter': {'type': 'constant'},
+        **{f'shape_{i}': {'type': 'rectangle',
+                          'to_world': mi.ScalarTransform4f().translate([i % 4 - 1.5, i // 4 - 1, 0]).scale(0.4),
+                          'bsdf': {'type': 'diffuse', 'reflectance': {'type': name, **CASES[name][0]}}}
+           for i, name in enumerate(sorted(CASES))}})
+    img = np.array(mi.render(scene, spp=4))
+    assert np.isfinite(img).all() and img.mean() > 0
+
+
+def test_register_again_and_after_variant_switch():
+    mpt.register()
+    mpt.register()
+    other = 'llvm_ad_mono' if VARIANT != 'llvm_ad_mono' else 'llvm_ad_rgb'
+    mi.set_variant(other)
+    try:
+        mpt.register()
+        tex = mi.load_dict({'type': 'pbrt_mix', 'tex1': 0.2, 'tex2': 0.6, 'amount': 0.25})
+        assert float(A(tex.eval_1(dr.zeros(mi.SurfaceInteraction3f, 1)))[0]) == pytest.approx(0.3)
+    finally:
+        mi.set_variant(VARIANT)
+    mpt.register()
+    tex = mi.load_dict({'type': 'pbrt_constant', 'value': 0.5})
+    assert float(A(tex.eval_1(dr.zeros(mi.SurfaceInteraction3f, 1)))[0]) == 0.5
+
+
+def test_mono_variant_returns_luminance():
+    mi.set_variant('llvm_ad_mono')
+    try:
+        tex = mi.load_dict({'type': 'pbrt_constant', 'value': {'type': 'rgb', 'value': [1, 0, 0]}})
+        v = A(tex.eval(dr.zeros(mi.SurfaceInteraction3f, 1)))
+        assert v.size == 1 and v.ravel()[0] == pytest.approx(0.212671, abs=1e-6)
+    finally:
+        mi.set_variant(VARIANT)
+
+
+@pytest.mark.parametrize('variant,words', [
+    ('scalar_rgb', 'scalar variants are not supported'),
+    ('llvm_ad_spectral', 'spectral variants are not supported'),
+])
+def test_unsupported_variants_refuse_clearly(variant, words):
+    mi.set_variant(variant)
+    try:
+        for name in ('pbrt_constant', 'pbrt_imagemap'):
+            with pytest.raises(Exception) as e:
+                mi.load_dict({'type': name, **CASES[name][0]})
+            assert name in str(e.value) and words in str(e.value) and variant in str(e.value)
+    finally:
+        mi.set_variant(VARIANT)
+
+
+def test_register_needs_a_variant(monkeypatch):
+    monkeypatch.setattr(mi, 'variant', lambda: None)
+    with pytest.raises(RuntimeError, match='no Mitsuba variant is set'):
+        mpt.register()
