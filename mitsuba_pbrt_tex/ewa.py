@@ -129,7 +129,7 @@ class EWAFilter:
             hi = dr.minimum(s1, dr.floor(s + (-B * tt + root) * inv_2a + SPAN_SLACK))
             hi = dr.select(disc >= 0, hi, lo - 1)
             if separable:
-                wy, _, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap)
+                _, wy, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap)
                 return lo, hi, mi.Float(wy), valid_y
             return lo, hi, it, mi.Bool(True)
 
@@ -172,5 +172,4 @@ class EWAFilter:
         state = (it, i_s, s_end, row_y, row_ok, dr.zeros(T), mi.Float(0))
         *_, acc, acc_w = dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_ewa')
         result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1), dr.zeros(T))
-        top = mip.fetch(mi.UInt32(last), mi.Float(0), mi.Float(0), active & beyond)
-        return dr.select(beyond, top, result)
+        return dr.select(beyond, mip.coarsest(active & beyond), result)

@@ -254,28 +254,37 @@ class MIPMap:
         """Continuous level for a filter width in texture units (pbrt: L-1 + log2 width)."""
         return dr.log2(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
 
+    def coarsest(self, active):
+        """The texel of the 1×1 top level — the image mean — read without wrapping, as pbrt
+        returns for every footprint that reaches it (also with ``black`` wrap)."""
+        last = len(self.sizes) - 1
+        return self.view(mi.UInt32(last)).gather(mi.Int32(0), mi.Int32(0), active)
+
     def filter_single_level(self, kind: str, st, width, active):
         """``point`` or ``bilinear`` at the level ``width`` selects (pbrt-v4)."""
         lookup = self.point if kind == 'point' else self.bilinear
-        if not self.has_pyramid:
+        if not self.has_pyramid or len(self.sizes) == 1:
             return lookup(0, st, active)
         last = len(self.sizes) - 1
         level = self.level_of(width)
-        ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last))
-        return lookup(ilevel, st, active)
+        top = level >= last
+        ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last - 1))
+        return dr.select(top, self.coarsest(active & top), lookup(ilevel, st, active & ~top))
 
     def trilinear(self, st, width, active):
-        if not self.has_pyramid:
+        if not self.has_pyramid or len(self.sizes) == 1:
             return self.bilinear(0, st, active)
         last = len(self.sizes) - 1
-        level = dr.clip(self.level_of(width), 0, last)
-        l0 = dr.minimum(dr.floor(level), max(last - 1, 0))
+        level = dr.maximum(self.level_of(width), 0)
+        top = level >= last
+        l0 = dr.minimum(dr.floor(level), last - 1)
         frac = dr.clip(level - l0, 0, 1)
         il0 = mi.UInt32(l0)
-        il1 = dr.minimum(il0 + 1, last)
-        v0 = self.bilinear(il0, st, active & (frac < 1))
-        v1 = self.bilinear(il1, st, active & (frac > 0))
-        return dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
+        run = active & ~top
+        v0 = self.bilinear(il0, st, run & (frac < 1))
+        v1 = self.bilinear(il0 + 1, st, run & (frac > 0))
+        blend = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
+        return dr.select(top, self.coarsest(active & top), blend)
 
 
 class LevelView:
