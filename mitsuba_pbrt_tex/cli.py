@@ -1,2 +1,92 @@
-def main(argv=None):
+"""Command line: ``python -m mitsuba_pbrt_tex {render,info,bench,demo} ...``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _render(args) -> int:
+    from .render import RenderError, render_file
+    try:
+        info = render_file(args.scene, args.output, spp=args.spp, variant=args.variant,
+                           progress=not args.quiet)
+    except RenderError as e:
+        print(f'error: {e}', file=sys.stderr)
+        return 2
+    print(f'wrote {info["exr"]} and {info["png"]} ({info["shape"][1]}x{info["shape"][0]}, '
+          f'{info["spp"]} spp, {info["variant"]})')
+    print(f'time: {info["render_s"]:.2f} s rendering ({info["first_pass_s"]:.2f} s for the first '
+          f'pass, including kernel compilation), {info["load_s"]:.2f} s loading')
+    if info['nonfinite']:
+        print(f'warning: {info["nonfinite"]} non-finite pixel values', file=sys.stderr)
+        return 1
     return 0
+
+
+def _info(args) -> int:
+    from . import docs
+    from .registry import PLUGINS
+    names = args.plugins or list(PLUGINS)
+    unknown = [n for n in names if n not in PLUGINS]
+    if unknown:
+        print(f'error: unknown plugin(s) {", ".join(unknown)}; plugins: {", ".join(PLUGINS)}',
+              file=sys.stderr)
+        return 2
+    print(docs.markdown(names) if args.markdown else docs.text(names), end='')
+    return 0
+
+
+def _bench(args) -> int:
+    if args.what == 'lookups':
+        from .bench.lookups import main as run
+    elif args.what == 'render':
+        from .bench.render import main as run
+    elif args.what == 'pyramid':
+        from .bench.pyramid import main as run
+    else:  # pragma: no cover - argparse restricts the choices
+        raise ValueError(args.what)
+    return run(args.rest)
+
+
+def _demo(args) -> int:
+    if args.what == 'inverse':
+        from .demo.inverse import main as run
+    else:  # pragma: no cover
+        raise ValueError(args.what)
+    return run(args.rest)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex',
+                                 description="PBRT's texture system as Mitsuba 3 plugins.")
+    sub = ap.add_subparsers(dest='command', required=True)
+
+    r = sub.add_parser('render', help='render a scene to EXR (+ tone-mapped PNG)')
+    r.add_argument('scene', help='scene XML file')
+    r.add_argument('-o', '--output', required=True, help='output .exr (a .png is written beside it)')
+    r.add_argument('--spp', type=int, default=None, help='samples per pixel (default: the scene\'s)')
+    r.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant (default llvm_ad_rgb)')
+    r.add_argument('-q', '--quiet', action='store_true', help='no progress display')
+    r.set_defaults(func=_render)
+
+    i = sub.add_parser('info', help='list the plugins and their parameters')
+    i.add_argument('plugins', nargs='*', help='plugin names (default: all)')
+    i.add_argument('--markdown', action='store_true', help='Markdown tables (as in the README)')
+    i.set_defaults(func=_info)
+
+    b = sub.add_parser('bench', help='benchmarks: lookups, render (speed vs error), pyramid')
+    b.add_argument('what', choices=['lookups', 'render', 'pyramid'])
+    b.add_argument('rest', nargs=argparse.REMAINDER, help='options of that benchmark (--help)')
+    b.set_defaults(func=_bench)
+
+    d = sub.add_parser('demo', help='demos: inverse (texture recovery with Adam)')
+    d.add_argument('what', choices=['inverse'])
+    d.add_argument('rest', nargs=argparse.REMAINDER, help='options of that demo (--help)')
+    d.set_defaults(func=_demo)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    return args.func(args)

@@ -20,7 +20,8 @@ from . import variants
 
 TEXTURES = (
     'pbrt_constant', 'pbrt_scale', 'pbrt_mix', 'pbrt_directionmix', 'pbrt_bilerp', 'pbrt_uv',
-    'pbrt_imagemap',
+    'pbrt_imagemap', 'pbrt_checkerboard', 'pbrt_dots', 'pbrt_fbm', 'pbrt_wrinkled', 'pbrt_windy',
+    'pbrt_marble', 'pbrt_supersample',
 )
 INTEGRATORS = ()
 PLUGINS = TEXTURES + INTEGRATORS

@@ -1,0 +1,61 @@
+"""Writing rendered images: OpenEXR (through the OpenEXR package) and a tone-mapped PNG, atomically.
+
+Both files are first written to a temporary file in the destination folder and then renamed over
+the destination, so a crash never leaves a half-written image, and readers never see one.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+
+def _atomic(path: str, write) -> None:
+    folder = os.path.dirname(os.path.abspath(path)) or '.'
+    os.makedirs(folder, exist_ok=True)
+    suffix = os.path.splitext(path)[1]
+    fd, tmp = tempfile.mkstemp(prefix='.tmp-', suffix=suffix, dir=folder)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_exr(path: str, image: np.ndarray, channel_names: list[str] | None = None) -> None:
+    """float32 (H, W, C) image; channels named R,G,B[,…] unless given."""
+    import OpenEXR
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    if image.ndim == 2:
+        image = image[..., None]
+    names = channel_names or (['R', 'G', 'B'] if image.shape[2] >= 3 else ['Y'])
+    names = names + [f'C{i}' for i in range(len(names), image.shape[2])]
+    channels = {n: np.ascontiguousarray(image[..., i]) for i, n in enumerate(names)}
+    header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
+
+    def write(tmp):
+        with OpenEXR.File(header, channels) as f:
+            f.write(tmp)
+
+    _atomic(path, write)
+
+
+def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """Linear RGB → 8-bit sRGB (clamped; exposure in stops)."""
+    x = np.clip(np.nan_to_num(rgb * 2.0 ** exposure, nan=0.0, posinf=1.0, neginf=0.0), 0, 1)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.clip(np.round(srgb * 255), 0, 255).astype(np.uint8)
+
+
+def write_png(path: str, rgb: np.ndarray, exposure: float = 0.0) -> None:
+    import mitsuba as mi
+    img = tonemap(np.asarray(rgb, dtype=np.float64)[..., :3], exposure)
+    if img.shape[2] == 1:
+        img = np.repeat(img, 3, axis=2)
+    bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
+    _atomic(path, lambda tmp: bmp.write(tmp))

@@ -1,0 +1,63 @@
+"""pbrt_dots — polka dots: one randomly placed dot per cell, or none (pbrt ``DotsTexture``).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| inside | float, rgb, texture | 1 | the value inside the dots | yes |
+| outside | float, rgb, texture | 0 | the value elsewhere | yes |
+| (2D mapping) | | | mapping parameters, see the mapping table | no |
+
+Cells are unit squares centred on integer (s, t); ``Noise(cell + .5) > 0`` decides whether the
+cell has a dot, whose centre is jittered by up to 0.15 (two more noise lookups) and whose radius
+is 0.35. No antialiasing (as in pbrt); wrap it in ``pbrt_supersample`` for that.
+"""
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.mapping import mapping_2d
+from mitsuba_pbrt_tex.noise import noise
+from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
+
+RADIUS = 0.35
+MAX_SHIFT = 0.5 - RADIUS
+
+
+def _noise2(x, y):
+    return noise(mi.Point3f(x, y, 0.5))
+
+
+class Plugin(PbrtTexture):
+    NAME = 'pbrt_dots'
+
+    def configure(self, p):
+        self.nested_texture(p, 'inside', 1.0)
+        self.nested_texture(p, 'outside', 0.0)
+        self.mapping = mapping_2d(p)
+        self.describe('mapping', self.mapping.describe())
+
+    def in_dot(self, si):
+        st = self.mapping.map(self.context(si)).st
+        s = dr.select(dr.isfinite(st.x), st.x, 0.0)
+        t = dr.select(dr.isfinite(st.y), st.y, 0.0)
+        s_cell, t_cell = dr.floor(s + 0.5), dr.floor(t + 0.5)
+        has_dot = _noise2(s_cell + 0.5, t_cell + 0.5) > 0
+        s_c = s_cell + MAX_SHIFT * _noise2(s_cell + 1.5, t_cell + 2.8)
+        t_c = t_cell + MAX_SHIFT * _noise2(s_cell + 4.5, t_cell + 9.8)
+        ds, dt = s - s_c, t - t_c
+        return has_dot & (ds * ds + dt * dt < RADIUS * RADIUS)
+
+    def evaluate(self, si, kind, active):
+        inside = self.in_dot(si)
+        a = self.nested_eval('inside', si, kind, active & inside)
+        b = self.nested_eval('outside', si, kind, active & ~inside)
+        return dr.select(inside, a, b)
+
+    def mean(self):
+        # about half of the cells hold a dot of area π·0.35²
+        f = 0.5 * math.pi * RADIUS * RADIUS
+        return mi.Float(f * nested_mean(self._nested['inside']) + (1 - f) * nested_mean(self._nested['outside']))
+
+    def prepare_differentials(self):
+        return super().prepare_differentials()

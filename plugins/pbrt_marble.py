@@ -1,0 +1,53 @@
+"""pbrt_marble — marble veins: a sine of a perturbed coordinate through a colour spline (pbrt).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| octaves | integer | 8 | maximum number of FBm octaves (0–30) | no |
+| roughness | float | 0.5 | ω of the FBm (≥ 0) | no |
+| scale | float | 1 | frequency: p is multiplied by it | no |
+| variation | float | 0.2 | amplitude of the FBm perturbation | no |
+| aamode | string | clamp | `clamp` (pbrt) or `none` (all octaves) | no |
+| (3D mapping) | | | the texture-space transform, see the mapping table | no |
+
+``t = .5 + .5·sin(p.y + variation·FBm(scale·p))`` selects a segment of a cubic Bézier spline
+through 9 marble colours; the result is 1.5× the spline colour. The segment index is pbrt-v4's
+``min(floor(6t), 5)`` (pbrt-v3's ``min(1, …)`` extrapolates the spline, its issue #252/#341).
+"""
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.noise import fbm
+from mitsuba_pbrt_tex.solid import NoiseTexture
+
+COLORS = [(.58, .58, .6), (.58, .58, .6), (.58, .58, .6), (.5, .5, .5), (.6, .59, .58),
+          (.58, .58, .6), (.58, .58, .6), (.2, .2, .33), (.58, .58, .6)]
+N_SEGMENTS = len(COLORS) - 3
+
+
+class Plugin(NoiseTexture):
+    NAME = 'pbrt_marble'
+
+    def configure_more(self, p):
+        self.scale = p.float('scale', 1.0)
+        self.variation = p.float('variation', 0.2)
+        self.describe('scale', self.scale)
+        self.describe('variation', self.variation)
+
+    def value(self, tc):
+        p = tc.p * self.scale
+        m = p.y + self.variation * fbm(p, tc.dpdx * self.scale, tc.dpdy * self.scale,
+                                       self.roughness, self.octaves, self.antialias)
+        t = 0.5 + 0.5 * dr.sin(m)
+        first = dr.clip(dr.floor(t * N_SEGMENTS), 0, N_SEGMENTS - 1)
+        u = t * N_SEGMENTS - first
+        idx = mi.UInt32(first)
+        cp = [dr.gather(mi.Color3f, mi.Float([c for rgb in COLORS for c in rgb]), idx + k)
+              for k in range(4)]
+        # de Casteljau evaluation of the cubic Bézier segment
+        a = [dr.lerp(cp[k], cp[k + 1], u) for k in range(3)]
+        b = [dr.lerp(a[k], a[k + 1], u) for k in range(2)]
+        return 1.5 * dr.lerp(b[0], b[1], u)
+
+    def mean(self):
+        return mi.Float(1.5 * 0.55)

@@ -1,0 +1,71 @@
+"""pbrt_supersample — average any texture over the pixel footprint (pbrt section 10.1.2).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| texture | texture | — | the texture to antialias (ours or any Mitsuba texture) | yes |
+| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata) | no |
+
+The footprint is the parallelogram spanned by the texture differentials: with offsets
+``(a, b) ∈ [-1/2, 1/2]²`` the wrapped texture is evaluated at ``uv + a·duv/dx + b·duv/dy`` and
+``p + a·dp/dx + b·dp/dy`` at the centre of each of the n×n strata, with differentials shrunk to
+the stratum (``duv/n``), and the results are averaged — a box filter over the pixel, computed by
+the midpoint rule. Deterministic; with zero differentials (Mitsuba's integrators) it equals the
+wrapped texture.
+"""
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.differentials import sanitize_partial
+from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
+
+
+class Plugin(PbrtTexture):
+    NAME = 'pbrt_supersample'
+
+    def configure(self, p):
+        if not p.has('texture'):
+            raise p.error('texture', 'is required (the texture to supersample)')
+        self.nested_texture(p, 'texture', 0.0)
+        self.samples = p.int('samples', 16, lo=1)
+        self.n = int(round(math.sqrt(self.samples)))
+        if self.n * self.n != self.samples:
+            raise p.error('samples', f'must be a perfect square (1, 4, 9, 16, 25, ...), got '
+                                     f'{self.samples}')
+        self.describe('samples', self.samples)
+
+    def evaluate(self, si, kind, active):
+        n = self.n
+        tex = self._nested['texture']
+        du_dx, dv_dx = sanitize_partial(si.duv_dx.x), sanitize_partial(si.duv_dx.y)
+        du_dy, dv_dy = sanitize_partial(si.duv_dy.x), sanitize_partial(si.duv_dy.y)
+        duv_dx, duv_dy = mi.Vector2f(du_dx, dv_dx), mi.Vector2f(du_dy, dv_dy)
+        dp_dx = si.dp_du * du_dx + si.dp_dv * dv_dx
+        dp_dy = si.dp_du * du_dy + si.dp_dv * dv_dy
+
+        def cond(k, acc):
+            return k < n * n
+
+        def body(k, acc):
+            a = (mi.Float(k % n) + 0.5) / n - 0.5
+            b = (mi.Float(k // n) + 0.5) / n - 0.5
+            sub = mi.SurfaceInteraction3f(si)
+            sub.uv = si.uv + a * duv_dx + b * duv_dy
+            sub.p = si.p + a * dp_dx + b * dp_dy
+            sub.duv_dx = duv_dx / n
+            sub.duv_dy = duv_dy / n
+            return k + 1, acc + kind.nested(tex, sub, active)
+
+        zero = kind.nested(tex, si, mi.Bool(False)) * 0
+        _, acc = dr.while_loop((mi.UInt32(0), zero), cond, body, max_iterations=n * n,
+                               label='pbrt_supersample')
+        return acc / (n * n)
+
+    def mean(self):
+        return nested_mean(self._nested['texture'])
+
+    def prepare_differentials(self):
+        super().prepare_differentials()
+        return True

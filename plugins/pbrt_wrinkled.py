@@ -1,0 +1,28 @@
+"""pbrt_wrinkled — turbulence: a sum of absolute noise octaves (pbrt ``WrinkledTexture``).
+
+| parameter | type | default | meaning | differentiable |
+|---|---|---|---|---|
+| octaves | integer | 8 | maximum number of octaves (0–30) | no |
+| roughness | float | 0.5 | ω, the weight ratio between successive octaves (≥ 0) | no |
+| aamode | string | clamp | `clamp` (pbrt: clamped octaves replaced by their mean 0.2) or `none` (all octaves) | no |
+| (3D mapping) | | | the texture-space transform, see the mapping table | no |
+
+``Σ ωⁱ·|Noise(1.99ⁱ·p)|``; a float texture (grey as colour).
+"""
+
+import mitsuba as mi
+
+from mitsuba_pbrt_tex.noise import turbulence
+from mitsuba_pbrt_tex.solid import NoiseTexture
+
+
+class Plugin(NoiseTexture):
+    NAME = 'pbrt_wrinkled'
+
+    def value(self, tc):
+        return turbulence(tc.p, tc.dpdx, tc.dpdy, self.roughness, self.octaves, self.antialias)
+
+    def mean(self):
+        w = self.roughness
+        k = self.octaves
+        return mi.Float(0.2 * (k if w == 1 else (1 - w ** k) / (1 - w)))

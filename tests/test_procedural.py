@@ -1,0 +1,301 @@
+"""Procedural and noise textures (pbrt 10.5, 10.6) against independent numpy implementations and
+numerical integration; the supersampling wrapper; hard cases."""
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import reference_noise as rn
+from conftest import A, make_si
+from mitsuba_pbrt_tex import noise as noise_lib
+
+LUM = np.array([0.212671, 0.715160, 0.072169])
+
+
+def solid_si(p, dpdx, dpdy):
+    """Lookups on the z = const plane with dp_du = x, dp_dv = y, so dp/dx = duv/dx (in xy)."""
+    n = len(p)
+    return make_si(p[:, :2], duv_dx=dpdx[:, :2], duv_dy=dpdy[:, :2], p=p,
+                   dp_du=[1, 0, 0], dp_dv=[0, 1, 0], n=[0, 0, 1])
+
+
+def footprints(rng, n, lo=1e-4, hi=10.0):
+    """In-plane differentials of log-uniform length, random directions (z component 0)."""
+    out = []
+    for _ in range(2):
+        ang = rng.uniform(0, 2 * math.pi, n)
+        length = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+        out.append(np.stack([np.cos(ang) * length, np.sin(ang) * length, np.zeros(n)], 1))
+    return out
+
+
+def f32(a):
+    return np.asarray(a, np.float32).astype(np.float64)
+
+
+# ------------------------------------------------------------------------------------ noise
+def test_perlin_noise_matches_reference(rng):
+    p = f32(rng.uniform(-300, 300, (20000, 3)))
+    p[:100] = np.round(p[:100])                          # lattice points (noise is 0 there)
+    p[100:200, 0] = np.floor(p[100:200, 0]) + 1e-3      # next to lattice planes
+    got = A(noise_lib.noise(mi.Point3f(p[:, 0], p[:, 1], p[:, 2])))
+    want = rn.noise3(p)
+    assert np.max(np.abs(got - want)) <= 1e-5
+    assert np.max(np.abs(got[:100])) <= 1e-6
+
+
+@pytest.mark.parametrize('kind', ['fbm', 'turbulence'])
+@pytest.mark.parametrize('omega,octaves', [(0.5, 8), (0.8, 5), (0.3, 12)])
+def test_fbm_and_turbulence_match_reference(kind, omega, octaves, rng):
+    n = 400
+    p = f32(rng.uniform(-20, 20, (n, 3)))
+    dpdx, dpdy = footprints(rng, n)
+    dpdx[:20] = dpdy[:20] = 0                            # all octaves
+    dpdx[20:40] = [np.inf, 0, 0]                         # none (inf differentials)
+    # exact octave boundaries: len² = 2^-(2k+2) gives n = k
+    k = np.arange(40) % octaves
+    dpdx[40:80] = np.stack([2.0 ** -(k + 1), np.zeros(40), np.zeros(40)], 1)
+    dpdy[40:80] = 0
+    fn = noise_lib.fbm if kind == 'fbm' else noise_lib.turbulence
+    ref = rn.fbm if kind == 'fbm' else rn.turbulence
+    V = lambda a: mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    got = A(fn(mi.Point3f(p[:, 0], p[:, 1], p[:, 2]), V(dpdx), V(dpdy), omega, octaves))
+    want = ref(p, dpdx, dpdy, omega, octaves)
+    assert np.max(np.abs(got - want)) <= 1e-5
+    assert np.all(np.isfinite(got))
+
+
+@pytest.mark.parametrize('name', ['pbrt_fbm', 'pbrt_wrinkled', 'pbrt_windy', 'pbrt_marble'])
+@pytest.mark.parametrize('aamode', ['clamp', 'none'])
+def test_noise_plugins_match_reference(name, aamode, rng):
+    n = 300
+    p = f32(rng.uniform(-10, 10, (n, 3)))
+    p[:, 2] = f32(np.full(n, 0.37))
+    dpdx, dpdy = footprints(rng, n, 1e-3, 3.0)
+    dpdx, dpdy = f32(dpdx), f32(dpdy)
+    dpdx[:10] = dpdy[:10] = 0
+    params = {'type': name, 'aamode': aamode}
+    if name == 'pbrt_marble':
+        params.update(scale=2.0, variation=0.4, octaves=6, roughness=0.6)
+    tex = mi.load_dict(params)
+    si = solid_si(p, dpdx, dpdy)
+    aa = aamode == 'clamp'
+    if name == 'pbrt_fbm':
+        want = rn.fbm(p, dpdx, dpdy, 0.5, 8, aa)
+    elif name == 'pbrt_wrinkled':
+        want = rn.turbulence(p, dpdx, dpdy, 0.5, 8, aa)
+    elif name == 'pbrt_windy':
+        want = rn.windy(p, dpdx, dpdy, aa)
+    else:
+        want = rn.marble(p, dpdx, dpdy, 6, 0.6, 2.0, 0.4, aa)
+    if name == 'pbrt_marble':
+        np.testing.assert_allclose(A(tex.eval_3(si)), want, atol=1e-5)
+        np.testing.assert_allclose(A(tex.eval_1(si)), want @ LUM, atol=1e-5)
+    else:
+        np.testing.assert_allclose(A(tex.eval_1(si)), want, atol=1e-5)
+        np.testing.assert_allclose(A(tex.eval(si)), np.repeat(want[:, None], 3, 1), atol=1e-5)
+
+
+def test_noise_texture_uses_to_world(rng):
+    n = 100
+    p = f32(rng.uniform(-3, 3, (n, 3)))
+    to_world = mi.ScalarTransform4f().scale(0.25)        # texture space = 4 × world
+    tex = mi.load_dict({'type': 'pbrt_fbm', 'to_world': to_world, 'aamode': 'none'})
+    got = A(tex.eval_1(solid_si(p, np.zeros((n, 3)), np.zeros((n, 3)))))
+    want = rn.fbm(f32(p.astype(np.float32) * np.float32(4)), np.zeros((n, 3)), np.zeros((n, 3)), .5, 8)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_clamping_reduces_variance_at_distance(rng):
+    """With a footprint of 2 noise periods, clamping leaves ~no octave (value ≈ 0), all-octave
+    noise keeps its full variance: the clamp is doing its job."""
+    n = 2000
+    p = f32(rng.uniform(-50, 50, (n, 3)))
+    d = np.tile([2.0, 0, 0], (n, 1))
+    clamp = A(mi.load_dict({'type': 'pbrt_fbm'}).eval_1(solid_si(p, d, d)))
+    full = A(mi.load_dict({'type': 'pbrt_fbm', 'aamode': 'none'}).eval_1(solid_si(p, d, d)))
+    assert clamp.std() < 0.01 < 0.1 < full.std()
+
+
+# ------------------------------------------------------------------------------------ dots
+def test_dots_match_reference(rng):
+    n = 5000
+    uv = f32(rng.uniform(-20, 20, (n, 2)))
+    tex = mi.load_dict({'type': 'pbrt_dots', 'inside': {'type': 'rgb', 'value': [1, 0, 0]},
+                        'outside': 0.25})
+    got = A(tex.eval(make_si(uv)))
+    inside = rn.in_dot(uv[:, 0], uv[:, 1])
+    want = np.where(inside[:, None], [1, 0, 0], [0.25, 0.25, 0.25])
+    # a lookup within float rounding of a dot's rim may fall either way
+    assert np.mean(np.all(np.abs(got - want) < 1e-6, axis=1)) > 0.999
+    assert 0.1 < inside.mean() < 0.3
+
+
+# ------------------------------------------------------------------------------------ checkerboard
+def _odd(x):
+    return np.floor(x) % 2
+
+
+def _axis_expectation(x, r, kernel, samples=200001):
+    """E[c(x + u)] of the square wave c = ±1 under the kernel (numerical midpoint quadrature)."""
+    if r == 0:
+        return 1 - 2 * _odd(x)
+    u = (np.arange(samples) + 0.5) / samples * 2 - 1          # in units of r, [-1, 1]
+    w = np.ones_like(u) if kernel == 'box' else 1 - np.abs(u)
+    c = 1 - 2 * _odd(x + r * u)
+    return float((w * c).sum() / w.sum())
+
+
+def checker_reference(coords, widths, kernel):
+    """Weight of tex2 by quadrature: the separable kernel makes E[Π c] = Π E[c]."""
+    prod = 1.0
+    for x, r in zip(coords, widths):
+        prod *= _axis_expectation(x, r if kernel == 'box' else 1.5 * r, kernel)
+    return 0.5 - 0.5 * prod
+
+
+@pytest.mark.parametrize('aamode', ['box', 'closedform', 'triangle'])
+@pytest.mark.parametrize('dimension', [2, 3])
+def test_checkerboard_against_quadrature(aamode, dimension, rng):
+    n = 150
+    p = f32(rng.uniform(-5, 5, (n, 3)))
+    dpdx, dpdy = footprints(rng, n, 1e-3, 0.6)
+    dpdx, dpdy = f32(dpdx), f32(dpdy)
+    dpdx[:10, 1] = 0                                  # one axis of zero width (pbrt-v3 NaN case)
+    dpdy[:10, 1] = 0
+    tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode, 'dimension': dimension,
+                        'tex1': 0.0, 'tex2': 1.0})
+    si = solid_si(p, dpdx, dpdy)
+    got = A(tex.eval_1(si))
+    kernel = 'triangle' if aamode == 'triangle' else 'box'
+    want = []
+    for k in range(n):
+        axes = 2 if dimension == 2 else 3
+        coords = p[k, :axes]
+        widths = np.maximum(np.abs(dpdx[k, :axes]), np.abs(dpdy[k, :axes]))
+        want.append(checker_reference(coords, widths, kernel))
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_checkerboard_box_wide_footprint_is_half_and_none_is_parity(rng):
+    n = 500
+    uv = f32(rng.uniform(-10, 10, (n, 2)))
+    wide = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'box', 'tex1': 0.0, 'tex2': 1.0})
+    got = A(wide.eval_1(make_si(uv, np.tile([1.5, 0], (n, 1)), np.zeros((n, 2)))))
+    np.testing.assert_allclose(got, 0.5)
+    none = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'none',
+                         'tex1': {'type': 'rgb', 'value': [1, 0, 0]}, 'tex2': 0.0})
+    out = A(none.eval(make_si(uv, np.full((n, 2), 0.3), np.full((n, 2), 0.3))))
+    even = (np.floor(uv[:, 0]) + np.floor(uv[:, 1])) % 2 == 0
+    np.testing.assert_allclose(out, np.where(even[:, None], [1, 0, 0], 0.0))
+
+
+def test_checkerboard_zero_differentials_are_point_samples(rng):
+    uv = f32(rng.uniform(-10, 10, (500, 2)))
+    even = (np.floor(uv[:, 0]) + np.floor(uv[:, 1])) % 2 == 0
+    for aamode in ('none', 'box', 'triangle'):
+        tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode})
+        np.testing.assert_allclose(A(tex.eval_1(make_si(uv))), np.where(even, 1.0, 0.0))
+
+
+def test_checkerboard_nested_only_where_needed(rng):
+    """A nested texture that is infinite never leaks where its weight is 0."""
+    inf_tex = {'type': 'pbrt_scale', 'tex': 3e38, 'scale': 10.0}
+    tex = mi.load_dict({'type': 'pbrt_checkerboard', 'tex1': 0.5, 'tex2': inf_tex})
+    uv = np.array([[0.5, 0.5], [2.5, 4.5]])                 # even cells, zero footprint
+    np.testing.assert_allclose(A(tex.eval_1(make_si(uv))), [0.5, 0.5])
+
+
+# ------------------------------------------------------------------------------------ supersample
+def test_supersample_converges_to_box_integral(rng):
+    """The midpoint rule over n×n strata converges to the box average of the point-sampled
+    checkerboard over the pixel parallelogram (here axis-aligned, so the exact average is
+    pbrt-v3's closed form, checked against quadrature above)."""
+    n = 200
+    uv = f32(rng.uniform(-5, 5, (n, 2)))
+    dx = np.stack([rng.uniform(0.2, 0.9, n), np.zeros(n)], 1)
+    dy = np.stack([np.zeros(n), rng.uniform(0.2, 0.9, n)], 1)
+    exact = np.array([checker_reference(uv[k], [dx[k, 0] / 2, dy[k, 1] / 2], 'box')
+                      for k in range(n)])
+    errors = []
+    for samples in (4, 64, 1024):
+        tex = mi.load_dict({'type': 'pbrt_supersample', 'samples': samples,
+                            'texture': {'type': 'pbrt_checkerboard', 'aamode': 'none',
+                                        'tex1': 0.0, 'tex2': 1.0}})
+        got = A(tex.eval_1(make_si(uv, dx, dy)))
+        errors.append(np.mean(np.abs(got - exact)))
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.01
+
+
+def test_supersample_zero_differentials_equals_wrapped(rng):
+    uv = rng.uniform(-3, 3, (300, 2))
+    for inner in ({'type': 'checkerboard', 'to_uv': mi.ScalarTransform4f().scale(3)},
+                  {'type': 'pbrt_dots'}, {'type': 'bitmap', 'filename': 'tests/data/srgb_11x9.png'}):
+        wrapped = mi.load_dict(inner)
+        ss = mi.load_dict({'type': 'pbrt_supersample', 'texture': inner, 'samples': 9})
+        si = make_si(uv)
+        np.testing.assert_allclose(A(ss.eval(si)), A(wrapped.eval(si)), atol=1e-6)
+
+
+def test_supersample_of_mitsuba_checkerboard_averages(rng):
+    uv = rng.uniform(0, 1, (100, 2))
+    ss = mi.load_dict({'type': 'pbrt_supersample', 'samples': 256,
+                       'texture': {'type': 'checkerboard', 'color0': 1.0, 'color1': 0.0,
+                                   'to_uv': mi.ScalarTransform4f().scale(8)}})
+    got = A(ss.eval_1(make_si(uv, np.tile([1.0, 0], (100, 1)), np.tile([0, 1.0], (100, 1)))))
+    np.testing.assert_allclose(got, 0.5, atol=0.02)
+
+
+def test_supersample_errors():
+    with pytest.raises(RuntimeError, match='pbrt_supersample: parameter "samples": must be a perfect square'):
+        mi.load_dict({'type': 'pbrt_supersample', 'texture': {'type': 'pbrt_dots'}, 'samples': 8})
+    with pytest.raises(RuntimeError, match='pbrt_supersample: parameter "texture": is required'):
+        mi.load_dict({'type': 'pbrt_supersample'})
+
+
+# ------------------------------------------------------------------------------------ hard cases
+@pytest.mark.parametrize('name', ['pbrt_checkerboard', 'pbrt_dots', 'pbrt_fbm', 'pbrt_wrinkled',
+                                  'pbrt_windy', 'pbrt_marble'])
+def test_hard_cases_finite(name):
+    inf, nan = float('inf'), float('nan')
+    p = np.array([[1e7, -1e7, 3.0], [-1e7, 1e7, 1e7], [0, 0, 0], [1, 2, 3], [0.5, 0.5, 0.5],
+                  [nan, 1, 1], [inf, -inf, 0], [2.0, 3.0, 0], [1e30, 1, 1], [0.35, 0.0, 0]])
+    d = np.array([[0, 0, 0], [nan, 0, 0], [inf, inf, 0], [1e-30, 0, 0], [1e30, 0, 0],
+                  [1, 1, 1], [0.1, 0, 0], [nan, nan, nan], [0, 0, 0], [0.2, 0.1, 0]])
+    si = make_si(p[:, :2], duv_dx=d[:, :2], duv_dy=d[::-1, :2], p=p, dp_du=[1, 0, 0],
+                 dp_dv=[0, 1, 0])
+    for params in ({}, {'aamode': 'none'} if name != 'pbrt_dots' else {}):
+        if name == 'pbrt_checkerboard':
+            params = dict(params, aamode=params.get('aamode', 'triangle'))
+        tex = mi.load_dict({'type': name, **params})
+        for out in (tex.eval(si), tex.eval_1(si)):
+            assert np.isfinite(A(out)).all(), (name, params, A(out))
+
+
+def test_marble_segment_edges_finite():
+    """t = 0.5 + 0.5 sin(m) reaches exactly 1 (segment index clamped to 5, pbrt-v4)."""
+    m = np.array([math.pi / 2, -math.pi / 2, 0.0, math.pi / 2 + 2 * math.pi])
+    p = np.stack([np.zeros(4), m, np.zeros(4)], 1)
+    tex = mi.load_dict({'type': 'pbrt_marble', 'variation': 0.0})
+    out = A(tex.eval_3(make_si(p[:, :2], p=p)))
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out[0], 1.5 * np.array([.58, .58, .6]), atol=1e-5)
+
+
+def test_noise_parameter_errors():
+    for d, words in [({'type': 'pbrt_fbm', 'octaves': -1}, ['"octaves"', '>= 0']),
+                     ({'type': 'pbrt_fbm', 'roughness': -0.5}, ['"roughness"', '>= 0']),
+                     ({'type': 'pbrt_wrinkled', 'aamode': 'box'}, ['"aamode"', 'clamp, none']),
+                     ({'type': 'pbrt_checkerboard', 'dimension': 4}, ['"dimension"', '2, 3']),
+                     ({'type': 'pbrt_checkerboard', 'aamode': 'gauss'},
+                      ['"aamode"', 'none, box, closedform, triangle'])]:
+        with pytest.raises(RuntimeError) as e:
+            mi.load_dict(d)
+        assert d['type'] in str(e.value)
+        for w in words:
+            assert w in str(e.value)
