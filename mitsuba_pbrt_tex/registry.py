@@ -7,6 +7,10 @@ Python class (a :class:`~mitsuba_pbrt_tex.texture.PbrtTexture` subclass) and
 whose single base is the current variant's ``mi.Texture`` (or integrator base).
 :func:`register` does this for every plugin; after the first call it also re-registers
 automatically whenever ``mi.set_variant`` switches variant (calling it again is harmless).
+
+Because methods are copied, plugin code must not use zero-argument ``super()`` (its implicit class
+is not in the flattened class's MRO); call the base explicitly, e.g.
+``PbrtTexture.prepare_differentials(self)``, or ``self._pbrt_base`` for the Mitsuba base class.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ TEXTURES = (
     'pbrt_imagemap', 'pbrt_checkerboard', 'pbrt_dots', 'pbrt_fbm', 'pbrt_wrinkled', 'pbrt_windy',
     'pbrt_marble', 'pbrt_supersample',
 )
-INTEGRATORS = ()
+INTEGRATORS = ('pbrt_path',)
 PLUGINS = TEXTURES + INTEGRATORS
 
 _classes: dict[tuple[str, str], type] = {}
@@ -50,6 +54,7 @@ def variant_class(impl: type, base: type) -> type:
 
     namespace['__init__'] = __init__
     namespace['_pbrt_impl'] = impl
+    namespace['_pbrt_base'] = base
     namespace['__module__'] = impl.__module__
     namespace['__qualname__'] = impl.__qualname__
     return type(impl.__name__, (base,), namespace)

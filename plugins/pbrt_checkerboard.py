@@ -63,4 +63,4 @@ class Plugin(PbrtTexture):
         return mi.Float(0.5 * (nested_mean(self._nested['tex1']) + nested_mean(self._nested['tex2'])))
 
     def prepare_differentials(self):
-        return self.aamode != 'none' or super().prepare_differentials()
+        return self.aamode != 'none' or PbrtTexture.prepare_differentials(self)

@@ -60,4 +60,4 @@ class Plugin(PbrtTexture):
         return mi.Float(f * nested_mean(self._nested['inside']) + (1 - f) * nested_mean(self._nested['outside']))
 
     def prepare_differentials(self):
-        return super().prepare_differentials()
+        return PbrtTexture.prepare_differentials(self)

@@ -67,5 +67,5 @@ class Plugin(PbrtTexture):
         return nested_mean(self._nested['texture'])
 
     def prepare_differentials(self):
-        super().prepare_differentials()
+        PbrtTexture.prepare_differentials(self)
         return True
