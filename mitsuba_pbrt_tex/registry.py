@@ -48,7 +48,11 @@ def variant_class(impl: type, base: type) -> type:
         namespace.update({k: v for k, v in klass.__dict__.items()
                           if k not in ('__dict__', '__weakref__', '__init__')})
 
+    precheck = getattr(impl, 'precheck', None)
+
     def __init__(self, props):
+        if precheck is not None:          # errors in our words before the base class reads props
+            precheck(props)
         base.__init__(self, props)
         self.setup(props)
 
