@@ -78,19 +78,25 @@ class EWAFilter:
         ilod = dr.floor(lod)
         frac = lod - ilod
         run = active & ~degenerate
-        v0 = self.level(ilod, st, dst0, dst1, run & (frac < 1))
-        v1 = self.level(ilod + 1, st, dst0, dst1, run & (frac > 0))
+        v0 = mip.split_levels(mi.UInt32(ilod),
+                              lambda lvl, m: self.level(lvl if isinstance(lvl, int) else ilod,
+                                                        st, dst0, dst1, m),
+                              run & (frac < 1))
+        v1 = self.level(ilod + 1, st, dst0, dst1, run & (frac > 0))      # level ≥ 1
         ewa = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
         fallback = mip.bilinear(0, st, active & degenerate)
         return dr.select(degenerate, fallback, ewa)
 
     def level(self, flevel, st, dst0, dst1, active):
-        """The EWA sum at one (per-lane) level; levels ≥ L give the coarsest texel."""
+        """The EWA sum at one level: static 0, or per lane (Float ≥ 1); levels ≥ L give the
+        coarsest texel."""
         mip = self.mip
         last = len(mip.sizes) - 1
-        beyond = flevel > last
-        level = mi.UInt32(dr.minimum(flevel, last))
-        view = mip.view(level)
+        if isinstance(flevel, int):
+            beyond, view = mi.Bool(False), mip.view(0)
+        else:
+            beyond = flevel > last
+            view = mip.view(mi.UInt32(dr.minimum(flevel, last)))
         w, h = view.size
 
         s = sanitize_coord(dr.fma(st.x, w, -0.5))
@@ -129,7 +135,7 @@ class EWAFilter:
             hi = dr.minimum(s1, dr.floor(s + (-B * tt + root) * inv_2a + SPAN_SLACK))
             hi = dr.select(disc >= 0, hi, lo - 1)
             if separable:
-                _, wy, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap)
+                _, wy, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap, *view.inv_size)
                 return lo, hi, mi.Float(wy), valid_y
             return lo, hi, it, mi.Bool(True)
 
@@ -153,7 +159,7 @@ class EWAFilter:
                 bucket = dr.minimum(dr.floor(dr.maximum(r2, 0) * LUT_SIZE), LUT_SIZE - 1)
                 wgt = dr.maximum(dr.exp(bucket * (-ALPHA / (LUT_SIZE - 1))) - _EXP_NEG_ALPHA, 0)
                 if separable:
-                    ix, _, valid = wrap_2d(col, mi.Float(0), w, h, mip.wrap)
+                    ix, _, valid = wrap_2d(col, mi.Float(0), w, h, mip.wrap, *view.inv_size)
                     texel = view.gather(row_y, ix, inside & row_ok & valid)
                 else:
                     texel = mip.fetch(view, col, it, inside)

@@ -53,10 +53,12 @@ class TextureFilter:
         l0 = dr.floor(level)
         frac = 0.0 if self.kind == 'bilinear' else level - l0
         il0 = mi.UInt32(l0)
-        g0 = mip.bilinear_gradient(il0, tc.st, active)
+        g0 = mip.split_levels(il0, lambda lvl, m: mip.bilinear_gradient(lvl, tc.st, m), active)
         if self.kind == 'bilinear':
             return g0
-        g1 = mip.bilinear_gradient(dr.minimum(il0 + 1, last), tc.st, active & (frac > 0))
+        il1 = dr.minimum(il0 + 1, last)
+        g1 = mip.split_levels(il1, lambda lvl, m: mip.bilinear_gradient(lvl, tc.st, m),
+                              active & (frac > 0))
         return tuple(dr.lerp(a, b, frac) for a, b in zip(g0, g1))
 
 

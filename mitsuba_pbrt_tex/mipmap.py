@@ -50,7 +50,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .wrap import sanitize_coord, wrap_2d
+from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
 FILTERS = ('point', 'bilinear', 'trilinear', 'ewa')
 WIDTH_CONVENTIONS = {'v3': 1.0, 'v4': 2.0}
@@ -210,7 +210,7 @@ class MIPMap:
         """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here)."""
         view = level if isinstance(level, LevelView) else self.view(level)
         w, h = view.size
-        ix, iy, valid = wrap_2d(x, y, w, h, self.wrap)
+        ix, iy, valid = wrap_2d(x, y, w, h, self.wrap, *view.inv_size)
         return view.gather(iy, ix, active & valid)
 
     # -------------------------------------------------------------------- filters at one level
@@ -229,7 +229,14 @@ class MIPMap:
         py = sanitize_coord(dr.fma(st.y, h, -0.5))
         x0, y0 = dr.floor(px), dr.floor(py)
         wx1, wy1 = px - x0, py - y0
-        texels = [self.fetch(view, x0 + bx, y0 + by, active) for by in (0, 1) for bx in (0, 1)]
+        if self.wrap == 'octahedralsphere':            # couples the axes: wrap per tap
+            texels = [self.fetch(view, x0 + bx, y0 + by, active)
+                      for by in (0, 1) for bx in (0, 1)]
+        else:                                           # wrap each axis once per tap column/row
+            xs = adjacent_wrapped(x0, w, self.wrap, view.inv_size[0])
+            ys = adjacent_wrapped(y0, h, self.wrap, view.inv_size[1])
+            texels = [view.gather(ys[by][0], xs[bx][0], active & xs[bx][1] & ys[by][1])
+                      for by in (0, 1) for bx in (0, 1)]
         return texels, (1 - wx1, wx1), (1 - wy1, wy1), (w, h)
 
     def bilinear(self, level, st, active):
@@ -254,6 +261,16 @@ class MIPMap:
         """Continuous level for a filter width in texture units (pbrt: L-1 + log2 width)."""
         return dr.log2(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
 
+    def split_levels(self, level, fn, active):
+        """``fn(lvl, mask)`` for a per-lane ``level`` that may be 0: evaluated once for the lanes
+        at level 0 (static, base tensor) and once for the others (coarser-level buffer), so no
+        tap ever gathers from both buffers. Packets of neighbouring lookups usually share their
+        level, and then one of the two calls has no active lane."""
+        if not self.has_pyramid or len(self.sizes) == 1:
+            return fn(0, active)
+        is0 = level == 0
+        return dr.select(is0, fn(0, active & is0), fn(level, active & ~is0))
+
     def coarsest(self, active):
         """The texel of the 1×1 top level — the image mean — read without wrapping, as pbrt
         returns for every footprint that reaches it (also with ``black`` wrap)."""
@@ -269,7 +286,8 @@ class MIPMap:
         level = self.level_of(width)
         top = level >= last
         ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last - 1))
-        return dr.select(top, self.coarsest(active & top), lookup(ilevel, st, active & ~top))
+        value = self.split_levels(ilevel, lambda lvl, m: lookup(lvl, st, m), active & ~top)
+        return dr.select(top, self.coarsest(active & top), value)
 
     def trilinear(self, st, width, active):
         if not self.has_pyramid or len(self.sizes) == 1:
@@ -281,44 +299,42 @@ class MIPMap:
         frac = dr.clip(level - l0, 0, 1)
         il0 = mi.UInt32(l0)
         run = active & ~top
-        v0 = self.bilinear(il0, st, run & (frac < 1))
-        v1 = self.bilinear(il0 + 1, st, run & (frac > 0))
+        v0 = self.split_levels(il0, lambda lvl, m: self.bilinear(lvl, st, m), run & (frac < 1))
+        v1 = self.bilinear(il0 + 1, st, run & (frac > 0))      # level ≥ 1
         blend = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
         return dr.select(top, self.coarsest(active & top), blend)
 
 
 class LevelView:
-    """Where the texels of one level live, for a static level 0 or a per-lane level (UInt32).
-
-    Computed once per lookup (size, offset) and reused by every tap.
-    """
+    """Where the texels of one level live: the base tensor (static level 0) or the buffer of
+    coarser levels (a per-lane UInt32 level ≥ 1; lanes at level 0 must be masked off — use
+    :meth:`MIPMap.split_levels`). Size and offset are computed once and reused by every tap, and
+    each tap is a single gather from one buffer."""
 
     def __init__(self, mip: MIPMap, level):
         self.mip = mip
         pyr = mip.pyr
-        self.single = isinstance(level, int) or len(pyr.sizes) == 1
-        if self.single:
+        self.base = isinstance(level, int) or len(pyr.sizes) == 1
+        if self.base:
             if isinstance(level, int) and level != 0:
                 raise ValueError('only level 0 can be static')
             self.size = (float(mip.width), float(mip.height))
+            self.inv_size = (1.0 / mip.width, 1.0 / mip.height)
         else:
             lv = pyr.levels
             self.size = (dr.gather(mi.Float, lv.w, level), dr.gather(mi.Float, lv.h, level))
-            self.is0 = level == 0
             self.off = dr.gather(mi.UInt32, lv.off, level)
             self.iw = mi.UInt32(self.size[0])
+            self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
 
     def gather(self, iy, ix, active):
         """Texel at wrapped integer (ix, iy)."""
         T = self.mip.value_type()
         pyr = self.mip.pyr
-        if self.single:
-            return dr.gather(T, pyr.base, mi.UInt32(iy) * self.mip.width + mi.UInt32(ix), active)
         iy, ix = mi.UInt32(iy), mi.UInt32(ix)
-        v0 = dr.gather(T, pyr.base, iy * self.mip.width + ix, active & self.is0)
-        v1 = dr.gather(T, pyr.levels.upper, dr.fma(iy, self.iw, ix + self.off),
-                       active & ~self.is0)
-        return dr.select(self.is0, v0, v1)
+        if self.base:
+            return dr.gather(T, pyr.base, dr.fma(iy, self.mip.width, ix), active)
+        return dr.gather(T, pyr.levels.upper, dr.fma(iy, self.iw, ix + self.off), active)
 
 
 def footprint_width(tc, convention: float):

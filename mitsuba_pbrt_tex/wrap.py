@@ -26,29 +26,31 @@ WRAP_MODES = ('repeat', 'black', 'clamp', 'mirror', 'octahedralsphere')
 COORD_LIMIT = float(2 ** 22)
 
 
-def _mod(x, n):
-    """Euclidean ``x mod n`` for float-valued integers x and n > 0."""
-    m = x - dr.floor(x / n) * n
+def _mod(x, n, inv_n=None):
+    """Euclidean ``x mod n`` for float-valued integers x and n > 0 (``inv_n`` ≈ 1/n: a
+    multiplication instead of a division; the two corrections absorb its rounding)."""
+    m = x - dr.floor(x * (dr.rcp(n) if inv_n is None else inv_n)) * n
     m = dr.select(m < 0, m + n, m)
     return dr.select(m >= n, m - n, m)
 
 
-def wrap_1d(x, n, mode: str):
+def wrap_1d(x, n, mode: str, inv_n=None):
     """Wrap float-valued integer ``x`` into ``[0, n)`` (not for black/octahedral)."""
     if mode == 'repeat':
-        return _mod(x, n)
+        return _mod(x, n, inv_n)
     if mode == 'clamp' or mode == 'black':
         return dr.clip(x, 0, n - 1)
     if mode == 'mirror':
-        m = _mod(x, 2 * n)
+        m = _mod(x, 2 * n, None if inv_n is None else 0.5 * inv_n)
         return dr.select(m >= n, 2 * n - 1 - m, m)
     raise ValueError(mode)
 
 
-def wrap_2d(x, y, w, h, mode: str):
+def wrap_2d(x, y, w, h, mode: str, inv_w=None, inv_h=None):
     """Wrap float-valued integer texel coordinates; returns ``(x, y, valid)`` as Int32/Int32/Bool.
 
     ``valid`` is False only for ``black`` taps outside the image (their value is 0).
+    ``inv_w``, ``inv_h``: precomputed reciprocals of the size (optional).
     """
     valid = mi.Bool(True)
     if mode == 'black':
@@ -63,8 +65,22 @@ def wrap_2d(x, y, w, h, mode: str):
         y = dr.select(top, -y, dr.select(bottom, 2 * h - 1 - y, y))
         x, y = dr.clip(x, 0, w - 1), dr.clip(y, 0, h - 1)
     else:
-        x, y = wrap_1d(x, w, mode), wrap_1d(y, h, mode)
+        x, y = wrap_1d(x, w, mode, inv_w), wrap_1d(y, h, mode, inv_h)
     return mi.Int32(x), mi.Int32(y), valid
+
+
+def adjacent_wrapped(x0, n, mode: str, inv_n=None):
+    """Wrapped ``x0`` and ``x0 + 1`` as ((index, valid), (index, valid)) for a separable mode
+    (the bilinear taps of one axis; repeat derives the second from the first)."""
+    if mode == 'black':
+        return tuple((dr.clip(x, 0, n - 1), (x >= 0) & (x < n)) for x in (x0, x0 + 1))
+    ok = mi.Bool(True)
+    a = wrap_1d(x0, n, mode, inv_n)
+    if mode == 'repeat':
+        b = dr.select(a + 1 >= n, 0, a + 1)
+    else:
+        b = wrap_1d(x0 + 1, n, mode, inv_n)
+    return (a, ok), (b, ok)
 
 
 def sanitize_coord(x):

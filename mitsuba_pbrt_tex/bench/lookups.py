@@ -1,0 +1,101 @@
+"""``python -m mitsuba_pbrt_tex bench lookups``: texture lookups per second, ours vs ``bitmap``.
+
+One random RGB float32 texture (1024² by default), one batch of random uv with anisotropic
+footprints (``--anisotropy`` : 1, minor axis ``--minor`` texels, random orientation), evaluated
+by Mitsuba's ``bitmap`` (bilinear, the same texels) and by ``pbrt_imagemap`` with each filter,
+in the same process, interleaved, median of ``--repeats`` runs after a warm-up that compiles the
+kernels. Prints millions of lookups per second and the ratio to ``bitmap``.
+
+Point and bilinear are timed twice: as under Mitsuba's integrators (no pyramid: level 0, like
+``bitmap``) and as under ``pbrt_path`` (the level the footprint selects).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+
+TARGETS = {'point (level 0)': 1.0, 'bilinear (level 0)': 1.0, 'trilinear': 0.5, 'ewa': 0.05}
+
+
+def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant='llvm_ad_rgb',
+        max_anisotropy=8.0, seed=1, coherent=False, out=print):
+    import drjit as dr
+    import mitsuba as mi
+
+    import mitsuba_pbrt_tex as mpt
+    from .timing import measure
+
+    mi.set_variant(variant)
+    mpt.register()
+    rng = np.random.default_rng(seed)
+    texels = rng.random((size, size, 3), dtype=np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, count)
+    if coherent:
+        # neighbouring lookups at neighbouring texels, as neighbouring pixels of a render: a
+        # raster of the texture, one lookup per cell, jittered within the cell
+        side = int(math.ceil(math.sqrt(count)))
+        k = np.arange(count)
+        u = (k % side + rng.random(count)) / side
+        v = (k // side + rng.random(count)) / side
+    else:
+        u, v = rng.random(count), rng.random(count)
+    si.uv = mi.Point2f(u.astype(np.float32), v.astype(np.float32))
+    ang = rng.uniform(0, math.pi, count)
+    major_len, minor_len = anisotropy * minor / size, minor / size
+    si.duv_dx = mi.Vector2f(major_len * np.cos(ang), major_len * np.sin(ang))
+    si.duv_dy = mi.Vector2f(-minor_len * np.sin(ang), minor_len * np.cos(ang))
+    dr.eval(si)
+
+    textures = {'bitmap (bilinear)': mi.load_dict(
+        {'type': 'bitmap', 'data': mi.TensorXf(texels), 'raw': True, 'filter_type': 'bilinear'})}
+    for name, filt, prepare in (('point (level 0)', 'point', False),
+                                ('point (MIP level)', 'point', True),
+                                ('bilinear (level 0)', 'bilinear', False),
+                                ('bilinear (MIP level)', 'bilinear', True),
+                                ('trilinear', 'trilinear', True), ('ewa', 'ewa', True)):
+        tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(texels), 'filter': filt,
+                            'maxanisotropy': max_anisotropy})
+        if prepare:
+            tex.prepare_differentials()
+        textures[name] = tex
+    fns = {name: (lambda t=tex: t.eval(si)) for name, tex in textures.items()}
+    times, first = measure(fns, repeats)
+    base = times['bitmap (bilinear)']
+    order = 'coherent (raster order)' if coherent else 'random'
+    out(f'lookups: {count} per batch at {order} uv, {size}x{size} RGB float32, footprints {anisotropy:g}:1 '
+        f'(minor axis {minor:g} texels, random orientation), maxanisotropy {max_anisotropy:g}, '
+        f'variant {variant}, median of {repeats}')
+    out(f'| method | ms / batch | M lookups/s | vs bitmap | target | first call (compile) ms |')
+    out(f'|---|---|---|---|---|---|')
+    rows = []
+    for name, t in times.items():
+        ratio = base / t
+        target = TARGETS.get(name)
+        mark = '' if target is None else f'≥ {target:g}× ' + ('(met)' if ratio >= target else '(MISSED)')
+        out(f'| {name} | {t * 1e3:.2f} | {count / t / 1e6:.1f} | {ratio:.3f}× | {mark} | '
+            f'{first[name] * 1e3:.0f} |')
+        rows.append(dict(method=name, ms=t * 1e3, mlookups=count / t / 1e6, ratio=ratio,
+                         target=target, first_ms=first[name] * 1e3))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench lookups',
+                                 description=__doc__.split('\n\n')[0])
+    ap.add_argument('--size', type=int, default=1024, help='texture resolution (square)')
+    ap.add_argument('--count', type=int, default=1 << 20, help='lookups per batch')
+    ap.add_argument('--anisotropy', type=float, default=8.0, help='major/minor axis ratio')
+    ap.add_argument('--minor', type=float, default=1.5, help='minor axis length in texels')
+    ap.add_argument('--maxanisotropy', type=float, default=8.0, help='EWA anisotropy clamp')
+    ap.add_argument('--repeats', type=int, default=7)
+    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--coherent', action='store_true',
+                    help='lookups in raster order over the texture (as from a render) instead of '
+                         'at random uv')
+    args = ap.parse_args(argv)
+    run(args.size, args.count, args.anisotropy, args.minor, args.repeats, args.variant,
+        args.maxanisotropy, coherent=args.coherent)
+    return 0
