@@ -24,8 +24,10 @@ Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 an
 Non-finite texels are replaced by 0 with a warning that gives their count.
 Decoded files are cached as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
 path, modification time, size, encoding, variant): Mitsuba constructs plugins on worker threads
-and merges identical ones, so several textures may ask for the same file at once; the cache builds
-each entry once under a per-key lock, and the MIP levels are built once on first request. The
+and merges identical ones, so several textures may ask for the same file at once; the cache reads
+each file once under a per-key lock (the work under it — file decoding in numpy, one host copy
+into a Dr.Jit array — launches no kernel, so a waiting worker cannot starve it), and the MIP
+levels are built once on first request (see :meth:`~mitsuba_pbrt_tex.mipmap.Pyramid.build`). The
 wrap mode is not part of the key because the pyramid does not depend on it (each coarse texel
 averages texels inside the image; see :mod:`mitsuba_pbrt_tex.mipmap`).
 """
@@ -87,8 +89,15 @@ _srgb8_tables: dict[str, np.ndarray] = {}
 
 
 def srgb8_table() -> np.ndarray:
-    """The 256 linear values Mitsuba's ``bitmap`` decodes 8-bit sRGB bytes to (per variant)."""
+    """The 256 linear values Mitsuba's ``bitmap`` decodes 8-bit sRGB bytes to (per variant).
+
+    :func:`mitsuba_pbrt_tex.register` computes it on the calling thread: building it runs a
+    Mitsuba texture lookup, which must not happen inside a plugin constructor on a worker thread
+    while other workers wait on the image cache (the pool could deadlock)."""
     variant = mi.variant()
+    table = _srgb8_tables.get(variant)
+    if table is not None:
+        return table
     with _srgb8_lock:
         table = _srgb8_tables.get(variant)
         if table is None:

@@ -113,7 +113,6 @@ def build_upper_levels(base: mi.Float, width: int, height: int, channels: int):
             cur = _downsample(cur, w, h, channels, 0, w2)
         if h2 != h:
             cur = _downsample(cur, w2, h, channels, 1, h2)
-        dr.eval(cur)
         offsets.append(offset)
         offset += w2 * h2
         parts.append(cur)
@@ -158,9 +157,17 @@ class Pyramid:
         return self.levels.sizes if self.levels is not None else [(self.width, self.height)]
 
     def build(self) -> 'Pyramid':
-        with self._lock:
-            if self.levels is None:
-                self.levels = Levels(self.base, self.width, self.height, self.channels)
+        """Build the coarser levels (once; thread-safe).
+
+        No lock is held while the levels are computed: Mitsuba constructs plugins on the same
+        thread pool that runs Dr.Jit's kernels, and a worker blocked on a lock while another
+        one waits for a kernel can deadlock the pool. Two threads may race to build the same
+        levels; the first to finish publishes them and the other result is dropped."""
+        if self.levels is None:
+            levels = Levels(self.base, self.width, self.height, self.channels)
+            with self._lock:
+                if self.levels is None:
+                    self.levels = levels
         return self
 
     def share_levels(self, other: 'Pyramid') -> None:

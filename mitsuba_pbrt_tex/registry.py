@@ -94,6 +94,9 @@ def register() -> None:
     if mi.variant() is None:
         raise RuntimeError('mitsuba_pbrt_tex.register(): no Mitsuba variant is set; call '
                            'mi.set_variant("llvm_ad_rgb") (or another variant) first')
+    if variants.support_problem(mi.variant()) is None:
+        from .image import srgb8_table
+        srgb8_table()            # on this thread, not inside a constructor on a worker thread
     for name in TEXTURES:
         mi.register_texture(name, plugin_class(name))
     for name in INTEGRATORS:

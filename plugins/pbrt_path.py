@@ -142,7 +142,8 @@ class Plugin:
         # ---- differentials: the camera ray's offsets, scaled for the sample count --------------
         sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
         spp = self.total_spp or sampler.sample_count()
-        scale = raydiff.spp_scale(spp, self.spp_mode)
+        # opaque: the scale changes with spp, and a literal would recompile the kernel each time
+        scale = dr.opaque(mi.Float, raydiff.spp_scale(spp, self.spp_mode))
         has_diff_in = bool(getattr(ray, 'has_differentials', False)) and want
         if dr.hint(has_diff_in, mode='scalar'):
             o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
