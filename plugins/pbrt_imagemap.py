@@ -8,18 +8,22 @@ pbrt-v4's filters (pbrt section 10.4).
 | filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
 | bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
 | data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear (runtime only) | yes |
-| filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` (alias `filter_type`: `nearest`, `bilinear`) | no |
+| filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` | no |
+| filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
-| wrap | string | repeat | `repeat`, `black`, `clamp`, `mirror` or `octahedralsphere` (alias `wrap_mode`: `repeat`, `mirror`, `clamp`) | no |
+| wrap | string | repeat | `repeat`, `black`, `clamp`, `mirror` or `octahedralsphere` | no |
+| wrap_mode | string | — | Mitsuba ``bitmap`` alias of wrap: `repeat`, `mirror` or `clamp` | no |
 | scale | float | 1 | factor applied to every texel value | yes |
 | invert | boolean | false | return ``max(0, 1 - scale·value)`` | no |
-| encoding | string | sRGB (8/16-bit), linear (float) | decoding of integer images: `sRGB`, `linear` or `gamma G` (alias `raw`: true = linear) | no |
+| encoding | string | sRGB (8/16-bit), linear (float) | decoding of integer images: `sRGB`, `linear` or `gamma G` | no |
+| raw | boolean | false | Mitsuba ``bitmap`` alias: true = encoding `linear` | no |
 | trilinearwidth | string | v3 | footprint width of point/bilinear/trilinear: `v3` = max abs derivative (pbrt-v3), `v4` = twice that (pbrt-v4) | no |
 | format | string | auto | Mitsuba ``bitmap`` storage option, accepted for drop-in use; storage is always float32 | no |
 | accel | boolean | true | Mitsuba ``bitmap`` option, accepted for drop-in use; no effect | no |
 | (2D mapping) | | | mapping parameters (``to_uv`` included), see the mapping table | no |
 
-Exactly one of ``filename``, ``bitmap``, ``data``.
+Exactly one of ``filename``, ``bitmap``, ``data``. A pbrt name and its ``bitmap`` alias together
+are an error.
 
 Orientation: as Mitsuba's ``bitmap`` and OpenImageIO — ``v = 0`` is the first row of the file (the
 top), texel centres at ``((i + 0.5)/W, (j + 0.5)/H)``, no flip. pbrt-v4 instead evaluates at

@@ -44,3 +44,14 @@ def test_pyramid_benchmark_runs():
     assert all(r['memory'] <= 1.34 for r in ours)
     assert all(r['rmse_level0'] == 0 for r in ours)
     assert all(p['memory'] > o['memory'] for o, p in zip(ours, pbrt))
+
+
+def test_inverse_demo_quick(tmp_path):
+    from mitsuba_pbrt_tex.demo import inverse
+    history, summary = inverse.run(str(tmp_path), iterations=2, res=16, spp=2, target_spp=8,
+                                   log=lambda s: None)
+    assert set(history) == {m[0] for m in inverse.METHODS}
+    for rows in history.values():
+        assert all(np.isfinite(r['loss']) and np.isfinite(r['texture_rmse']) for r in rows)
+        assert rows[-1]['texture_rmse'] < rows[0]['texture_rmse'] + 1e-3
+    assert (tmp_path / 'inverse.csv').exists() and (tmp_path / 'summary.md').exists()

@@ -85,19 +85,22 @@ def cases() -> list[Case]:
     flat = ({'texture': 'tex/flat.xml', 'flat': '0.2'}, {'texture': 'tex/flat.xml', 'flat': '0.8'})
     out = []
     b, o = _checker_cases()
+    cells = {'cells': '2000', 'half_cells': '1000'}
     out.append(Case('grazing-checker', 'grazing.xml',
-                    'plane to the horizon, procedural checkerboard (1 world unit cells)',
+                    'plane to the horizon, procedural checkerboard (cells of 0.2 world units)',
                     {'texture': 'tex/checker_pbrt.xml', 'aamode': 'none', 'integrator': 'path'},
-                    b + o, flat))
-    b, o = _image_methods('../textures/checker.png', '25')
+                    b + o, flat, base=cells))
+    b, o = _image_methods('../textures/checker.png', '125')
     out.append(Case('grazing-checker-image', 'grazing.xml',
-                    'plane to the horizon, checker image (16×16 checks per tile, 25×25 tiles)',
-                    {'texture': 'tex/image_bitmap.xml', 'integrator': 'path'}, b + o, flat))
-    b, o = _image_methods('../textures/zoneplate.png', '40')
+                    'plane to the horizon, checker image (16×16 checks per tile, 125×125 tiles: '
+                    'the same 0.2-unit cells)',
+                    {'texture': 'tex/image_bitmap.xml', 'tiles': '125', 'integrator': 'path'},
+                    b + o, flat))
+    b, o = _image_methods('../textures/zoneplate.png', '100')
     out.append(Case('grazing-zoneplate', 'grazing.xml',
-                    'plane to the horizon, zone-plate image (40×40 tiles)',
+                    'plane to the horizon, zone-plate image (100×100 tiles)',
                     {'texture': 'tex/image_bitmap.xml', 'image': '../textures/zoneplate.png',
-                     'tiles': '40', 'integrator': 'path'}, b + o, flat))
+                     'tiles': '100', 'integrator': 'path'}, b + o, flat))
     mapping_ours = [Method(f'pbrt_imagemap {f}', {'filter': f.split()[0], **extra}, True, grp)
                     for f, extra, grp in (('bilinear', {}, ''),
                                           ('trilinear v3', {'trilinearwidth': 'v3'}, 'trilinear-width'),
