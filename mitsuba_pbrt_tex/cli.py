@@ -33,6 +33,10 @@ def _info(args) -> int:
         print(f'error: unknown plugin(s) {", ".join(unknown)}; plugins: {", ".join(PLUGINS)}',
               file=sys.stderr)
         return 2
+    if args.update_readme:
+        docs.update_readme(args.update_readme, args.bench_results)
+        print(f'updated {args.update_readme}')
+        return 0
     print(docs.markdown(names) if args.markdown else docs.text(names), end='')
     return 0
 
@@ -44,6 +48,8 @@ def _bench(args) -> int:
         from .bench.render import main as run
     elif args.what == 'pyramid':
         from .bench.pyramid import main as run
+    elif args.what == 'integrator':
+        from .bench.integrator import main as run
     else:  # pragma: no cover - argparse restricts the choices
         raise ValueError(args.what)
     return run(args.rest)
@@ -73,10 +79,16 @@ def parser() -> argparse.ArgumentParser:
     i = sub.add_parser('info', help='list the plugins and their parameters')
     i.add_argument('plugins', nargs='*', help='plugin names (default: all)')
     i.add_argument('--markdown', action='store_true', help='Markdown tables (as in the README)')
+    i.add_argument('--update-readme', metavar='README', default=None,
+                   help="rewrite the README's generated sections (plugin reference, benchmark "
+                        'summary) in place')
+    i.add_argument('--bench-results', metavar='RESULTS_MD', default=None,
+                   help='results.md of a full `bench render` run, for --update-readme')
     i.set_defaults(func=_info)
 
-    b = sub.add_parser('bench', help='benchmarks: lookups, render (speed vs error), pyramid')
-    b.add_argument('what', choices=['lookups', 'render', 'pyramid'])
+    b = sub.add_parser('bench', help='benchmarks: lookups, render (speed vs error), pyramid, '
+                                     'integrator')
+    b.add_argument('what', choices=['lookups', 'render', 'pyramid', 'integrator'])
     b.add_argument('rest', nargs=argparse.REMAINDER, help='options of that benchmark (--help)')
     b.set_defaults(func=_bench)
 

@@ -121,3 +121,20 @@ def text(names=PLUGINS) -> str:
             lines.append(f'  {"":<{width}}    {r.meaning}')
         lines.append('')
     return '\n'.join(lines)
+
+
+def update_readme(path: str, bench_results: str | None = None) -> None:
+    """Rewrite README's generated sections: the plugin reference and (given the benchmark's
+    ``results.md``) its summary lines."""
+    import re
+    text = open(path, encoding='utf-8').read()
+    text = re.sub(r'<!-- BEGIN PLUGIN REFERENCE -->.*<!-- END PLUGIN REFERENCE -->',
+                  lambda m: '<!-- BEGIN PLUGIN REFERENCE -->\n' + markdown()
+                  + '<!-- END PLUGIN REFERENCE -->', text, flags=re.S)
+    if bench_results:
+        summary = open(bench_results, encoding='utf-8').read().split('## Summary')[1].strip()
+        text = re.sub(r'<!-- BEGIN BENCH SUMMARY -->.*<!-- END BENCH SUMMARY -->',
+                      lambda m: '<!-- BEGIN BENCH SUMMARY -->\n' + summary
+                      + '\n<!-- END BENCH SUMMARY -->', text, flags=re.S)
+    with open(path, 'w', encoding='utf-8') as f:
+        f.write(text)

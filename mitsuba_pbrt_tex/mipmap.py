@@ -206,10 +206,6 @@ class MIPMap:
         return mi.Color3f if self.channels == 3 else mi.Float
 
     # -------------------------------------------------------------------- per-lane level data
-    def level_size(self, level):
-        """(w, h) as Floats for a per-lane level (UInt32), or Python floats for level 0."""
-        return self.view(level).size
-
     def view(self, level) -> 'LevelView':
         return LevelView(self, level)
 

@@ -15,7 +15,6 @@ variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single bas
 
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 
 from . import variants

@@ -15,7 +15,6 @@ message that says why:
 
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 
 
@@ -43,21 +42,8 @@ def require_supported(plugin: str) -> None:
         raise UnsupportedVariantError(f'{plugin}: variant {mi.variant()!r}: {problem}')
 
 
-def is_mono() -> bool:
-    return mi.is_monochromatic
-
-
 def rgb_to_spectrum(rgb: mi.Color3f) -> mi.UnpolarizedSpectrum:
     """Linear RGB → the variant's ``UnpolarizedSpectrum`` (RGB as is, mono as luminance)."""
     if mi.is_monochromatic:
         return mi.UnpolarizedSpectrum(mi.luminance(rgb))
     return mi.UnpolarizedSpectrum(rgb)
-
-
-def spectrum_to_rgb(value) -> mi.Color3f:
-    """The variant's spectrum (or a Float) → Color3f (mono values become grey)."""
-    if isinstance(value, mi.Color3f):
-        return value
-    if mi.is_monochromatic or not dr.is_array_v(value) or dr.size_v(value) == 1:
-        return mi.Color3f(value[0] if dr.size_v(value) == 1 else value)
-    return mi.Color3f(value)

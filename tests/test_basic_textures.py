@@ -1,6 +1,5 @@
 """Basic textures (pbrt section 10.3) against their analytic formulas; nesting Mitsuba built-ins."""
 
-import math
 
 import drjit as dr
 import mitsuba as mi

@@ -1,7 +1,6 @@
 """Benchmarks as smoke tests: they run end to end and produce their outputs (not timed tests)."""
 
 import csv
-import os
 
 import numpy as np
 import pytest
@@ -55,3 +54,10 @@ def test_inverse_demo_quick(tmp_path):
         assert all(np.isfinite(r['loss']) and np.isfinite(r['texture_rmse']) for r in rows)
         assert rows[-1]['texture_rmse'] < rows[0]['texture_rmse'] + 1e-3
     assert (tmp_path / 'inverse.csv').exists() and (tmp_path / 'summary.md').exists()
+
+
+def test_integrator_benchmark_runs():
+    from mitsuba_pbrt_tex.bench import integrator
+    rows = integrator.run(spp=1, res=(16, 9), repeats=1, out=lambda s: None)
+    assert len(rows) == len(integrator.CASES)
+    assert all(r['path'] > 0 and r['on'] > 0 and r['off'] > 0 for r in rows)

@@ -192,16 +192,16 @@ def test_squared_error_loss_gradient(rng):
 
 
 def test_backward_through_ewa_memory_stays_bounded(rng):
-    """Reverse mode through the EWA loop (max_iterations=-1 hint) at 128×128, 4 spp: the peak
+    """Reverse mode through the EWA loop (max_iterations=-1 hint) at 256×256, 2 spp: the peak
     resident memory of the process grows by less than 2 GiB."""
     tex = image_tex(rng, 'ewa', size=256)
-    scene = mi.load_dict({**_dict_scene(tex, 128)})
+    scene = mi.load_dict({**_dict_scene(tex, 256)})
     params = mi.traverse(scene)
     key = 'plane.bsdf.reflectance.data'
     dr.enable_grad(params[key])
     params.update()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    img = mi.render(scene, params, spp=4, seed=1)
+    img = mi.render(scene, params, spp=2, seed=1)
     dr.backward(dr.mean(img, axis=None))
     g = np.array(dr.grad(params[key]))
     after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -3,7 +3,6 @@ finite differences of the mapping itself (seams, poles and the origin included).
 
 import math
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest

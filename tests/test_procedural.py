@@ -3,7 +3,6 @@ numerical integration; the supersampling wrapper; hard cases."""
 
 import math
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -17,7 +16,6 @@ LUM = np.array([0.212671, 0.715160, 0.072169])
 
 def solid_si(p, dpdx, dpdy):
     """Lookups on the z = const plane with dp_du = x, dp_dv = y, so dp/dx = duv/dx (in xy)."""
-    n = len(p)
     return make_si(p[:, :2], duv_dx=dpdx[:, :2], duv_dy=dpdy[:, :2], p=p,
                    dp_du=[1, 0, 0], dp_dv=[0, 1, 0], n=[0, 0, 1])
 

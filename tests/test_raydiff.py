@@ -1,8 +1,6 @@
 """Ray-differential math of pbrt_path against finite differences and closed forms."""
 
-import math
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest

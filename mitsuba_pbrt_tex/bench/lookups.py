@@ -68,8 +68,8 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
     out(f'lookups: {count} per batch at {order} uv, {size}x{size} RGB float32, footprints {anisotropy:g}:1 '
         f'(minor axis {minor:g} texels, random orientation), maxanisotropy {max_anisotropy:g}, '
         f'variant {variant}, median of {repeats}')
-    out(f'| method | ms / batch | M lookups/s | vs bitmap | target | first call (compile) ms |')
-    out(f'|---|---|---|---|---|---|')
+    out('| method | ms / batch | M lookups/s | vs bitmap | target | first call (compile) ms |')
+    out('|---|---|---|---|---|---|')
     rows = []
     for name, t in times.items():
         ratio = base / t

@@ -1,0 +1,77 @@
+"""``python -m mitsuba_pbrt_tex bench integrator``: the cost of ``pbrt_path`` against ``path``.
+
+The same scenes and textures rendered by Mitsuba's ``path``, by ``pbrt_path`` with texture
+differentials, and by ``pbrt_path`` with ``texture_differentials=false``, in one process,
+interleaved, median of ``--repeats`` renders after a warm-up (compilation excluded). Prints the
+time ratios to ``path``. Targets: ≤ 1.2× with differentials, ≈ 1.0× without.
+
+The first cases isolate the integrator: Mitsuba's ``bitmap`` wrapped in a one-sample
+``pbrt_supersample`` does the same lookups whatever the footprint, but asks for differentials.
+In the other cases the textures are filtered, so with differentials they also read coarser MIP
+levels or run EWA — the cost of filtering is then part of what is measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+CASES = (
+    # the integrator's own overhead: identical texture lookups, differentials computed or not
+    ('grazing, bitmap asking for differentials', 'grazing.xml',
+     {'texture': 'tex/image_bitmap_footprint.xml', 'tiles': '125'}),
+    ('specular, bitmap asking for differentials', 'specular.xml',
+     {'texture': 'tex/image_bitmap_footprint.xml'}),
+    # with filtering: the textures' own cost changes with the footprint too
+    ('grazing, image (trilinear)', 'grazing.xml',
+     {'texture': 'tex/image_pbrt.xml', 'filter': 'trilinear', 'tiles': '125'}),
+    ('grazing, procedural checkerboard', 'grazing.xml',
+     {'texture': 'tex/checker_pbrt.xml', 'cells': '2000'}),
+    ('specular, image (trilinear)', 'specular.xml',
+     {'texture': 'tex/image_pbrt.xml', 'filter': 'trilinear'}),
+    ('mappings (ewa)', 'mappings.xml', {'filter': 'ewa'}),
+    ('noise (clamp)', 'noise.xml', {}),
+)
+
+
+def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
+    import mitsuba as mi
+
+    import mitsuba_pbrt_tex as mpt
+    from .render import scenes_dir
+    from .timing import measure
+
+    mi.set_variant(variant)
+    mpt.register()
+    integrators = {'path': mi.load_dict({'type': 'path', 'max_depth': 5}),
+                   'pbrt_path': mi.load_dict({'type': 'pbrt_path', 'max_depth': 5}),
+                   'pbrt_path, differentials off': mi.load_dict(
+                       {'type': 'pbrt_path', 'max_depth': 5, 'texture_differentials': False})}
+    out(f'integrators: {res[0]}x{res[1]}, {spp} spp, max_depth 5, median of {repeats}, {variant}')
+    out('| scene | path (ms) | pbrt_path (ms) | ratio (target ≤ 1.2) | differentials off (ms) '
+        '| ratio (target ≈ 1.0) |')
+    out('|---|---|---|---|---|---|')
+    rows = []
+    for name, xml, params in CASES:
+        scene = mi.load_file(os.path.join(scenes_dir(), xml), width=str(res[0]),
+                             height=str(res[1]), **params)
+        fns = {k: (lambda i=i: mi.render(scene, integrator=i, spp=spp, seed=1))
+               for k, i in integrators.items()}
+        times, _ = measure(fns, repeats)
+        base = times['path']
+        on, off = times['pbrt_path'], times['pbrt_path, differentials off']
+        out(f'| {name} | {base * 1e3:.1f} | {on * 1e3:.1f} | {on / base:.2f}× | '
+            f'{off * 1e3:.1f} | {off / base:.2f}× |')
+        rows.append(dict(scene=name, path=base, on=on, off=off))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench integrator',
+                                 description=__doc__.split('\n\n')[0])
+    ap.add_argument('--spp', type=int, default=16)
+    ap.add_argument('--repeats', type=int, default=5)
+    ap.add_argument('--variant', default='llvm_ad_rgb')
+    args = ap.parse_args(argv)
+    run(args.spp, repeats=args.repeats, variant=args.variant)
+    return 0
