@@ -33,14 +33,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .wrap import sanitize_coord, wrap_2d
+from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
 LUT_SIZE = 128
 ALPHA = 2.0
 #: Texels whose centre is within this distance (texels) outside a row's exact span are still
 #: tested against r² < 1, so rounding in the span computation can never drop a weighted texel.
 SPAN_SLACK = 1e-3
-COLUMNS_PER_STEP = 2
+COLUMNS_PER_STEP = 2          # adjacent_wrapped() below gives exactly two columns
 _EXP_NEG_ALPHA = float(np.float32(np.exp(-ALPHA)))
 
 
@@ -150,6 +150,8 @@ class EWAFilter:
             tt = it - t
             ctt = C * tt * tt
             btt = B * tt
+            if separable:                       # the columns' wrapped indices, wrapping once
+                cols = adjacent_wrapped(i_s, w, mip.wrap, view.inv_size[0])
             for k in range(COLUMNS_PER_STEP):
                 col = i_s + k
                 ss = col - s
@@ -159,7 +161,7 @@ class EWAFilter:
                 bucket = dr.minimum(dr.floor(dr.maximum(r2, 0) * LUT_SIZE), LUT_SIZE - 1)
                 wgt = dr.maximum(dr.exp(bucket * (-ALPHA / (LUT_SIZE - 1))) - _EXP_NEG_ALPHA, 0)
                 if separable:
-                    ix, _, valid = wrap_2d(col, mi.Float(0), w, h, mip.wrap, *view.inv_size)
+                    ix, valid = cols[k]
                     texel = view.gather(row_y, ix, inside & row_ok & valid)
                 else:
                     texel = mip.fetch(view, col, it, inside)

@@ -3,10 +3,14 @@
 Storage
 -------
 Level 0 is *the user's tensor itself* (``data`` of ``pbrt_imagemap``, float32, shape (H, W, C)),
-so lookups at level 0 differentiate to it exactly as Mitsuba's ``bitmap`` does, whatever else
-happened. Levels 1… are box-filtered from it with Dr.Jit operations (so gradients reach the base
-texels through coarse levels too) and stored back to back in one flat float32 buffer. Memory is
-at most 4/3 of the base level.
+so lookups at level 0 differentiate to it exactly as Mitsuba's ``bitmap`` does. RGB images also
+keep a padded RGBA copy of level 0 for lookups (one packet load per texel instead of three
+gathers; Mitsuba's ``bitmap``/Dr.Jit texture does the same). Levels 1… are box-filtered from it
+with Dr.Jit operations (so gradients reach the base texels through coarse levels too) and stored
+back to back in one flat float32 buffer, RGBA-padded for RGB. The pyramid (padded level 0 and
+the coarser levels) is at most 4/3 of its base level; with the tensor itself, an RGB texture
+takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory (Mitsuba's ``bitmap``: 1 + 4/3 ≈ 2.3×, without
+a pyramid); a 1-channel texture 4/3×.
 
 Non-power-of-two images
 -----------------------
@@ -122,31 +126,55 @@ def build_upper_levels(base: mi.Float, width: int, height: int, channels: int):
 
 
 # ------------------------------------------------------------------------------------ MIP map
+def pad_rgb(flat: mi.Float) -> mi.Float:
+    """RGB texels (3 floats each) → RGBA (4 floats each, A = 0), with Dr.Jit gathers (so
+    gradients flow back to the RGB texels)."""
+    idx = dr.arange(mi.UInt32, dr.width(flat) // 3 * 4)
+    ch = idx & 3
+    return dr.gather(mi.Float, flat, (idx >> 2) * 3 + dr.minimum(ch, 2), ch < 3)
+
+
 class Levels:
     """Levels 1… of a pyramid: one flat buffer, their sizes, and per-level lookup tables."""
 
-    def __init__(self, base: mi.Float, width: int, height: int, channels: int):
-        self.upper, self.sizes, offsets = build_upper_levels(base, width, height, channels)
+    def __init__(self, base: mi.Float, width: int, height: int, stride: int):
+        self.upper, self.sizes, offsets = build_upper_levels(base, width, height, stride)
         self.w = mi.Float([s[0] for s in self.sizes])
         self.h = mi.Float([s[1] for s in self.sizes])
         self.off = mi.UInt32(offsets)
 
 
 class Pyramid:
-    """The texels of one image: level 0 is ``tensor`` itself (read at lookup time, so enabling
-    gradients on it is always seen); :meth:`build` adds the coarser :class:`Levels`."""
+    """The texels of one image.
+
+    Level 0 is ``tensor`` itself (read at lookup time, so enabling gradients on it is always
+    seen). RGB images also get a padded RGBA copy of it (``base4``): Dr.Jit gathers a texel of
+    4 floats as one packet load, 3 floats as three gathers — 1.7× faster bilinear lookups
+    (measured, ``bench lookups``), at the memory cost Mitsuba's ``bitmap`` pays too (it keeps the
+    tensor and a padded texture). :meth:`build` adds the coarser :class:`Levels`, stored padded
+    as well (``stride`` floats per texel)."""
 
     def __init__(self, tensor: mi.TensorXf):
         if len(tensor.shape) != 3 or tensor.shape[2] not in (1, 3) or min(tensor.shape[:2]) < 1:
             raise ValueError(f'expected an (H, W, 1|3) tensor, got shape {tuple(tensor.shape)}')
         self.tensor = tensor
         self.height, self.width, self.channels = (int(s) for s in tensor.shape)
+        self.stride = 4 if self.channels == 3 else 1
+        self.base4 = None                      # see prepare()
         self.levels: Levels | None = None
         self._lock = threading.Lock()
 
     @property
     def base(self) -> mi.Float:
         return self.tensor.array
+
+    @property
+    def packed_base(self) -> bool:
+        """Use the padded copy of level 0? Not when gradients were enabled on the tensor after
+        the copy was made (it would not carry them): then gather the tensor itself."""
+        if self.base4 is None:
+            return False
+        return dr.grad_enabled(self.base4) or not dr.grad_enabled(self.base)
 
     @property
     def built(self) -> bool:
@@ -156,26 +184,44 @@ class Pyramid:
     def sizes(self):
         return self.levels.sizes if self.levels is not None else [(self.width, self.height)]
 
-    def build(self) -> 'Pyramid':
-        """Build the coarser levels (once; thread-safe).
+    def prepare(self) -> 'Pyramid':
+        """Make the padded RGBA copy of level 0 (RGB images; once; thread-safe).
 
-        No lock is held while the levels are computed: Mitsuba constructs plugins on the same
-        thread pool that runs Dr.Jit's kernels, and a worker blocked on a lock while another
-        one waits for a kernel can deadlock the pool. Two threads may race to build the same
-        levels; the first to finish publishes them and the other result is dropped."""
+        Shared pyramids are used by textures constructed on different worker threads, so what
+        they hold is *evaluated* before it is published: a lazy Dr.Jit expression recorded on
+        one thread must not be extended on another (Dr.Jit's scopes are per thread). And no lock
+        is held while kernels run: Mitsuba constructs plugins on the pool that runs Dr.Jit's
+        kernels, and a worker blocked on a lock while another waits for a kernel can deadlock
+        it. Two threads may race to compute the same thing; the first result is kept."""
+        if self.channels == 3 and self.base4 is None:
+            base4 = pad_rgb(self.base)
+            dr.eval(base4)
+            with self._lock:
+                if self.base4 is None:
+                    self.base4 = base4
+        return self
+
+    def build(self) -> 'Pyramid':
+        """Build the coarser levels (once; thread-safe, as :meth:`prepare`)."""
         if self.levels is None:
-            levels = Levels(self.base, self.width, self.height, self.channels)
+            self.prepare()
+            source = self.base4 if self.base4 is not None else self.base
+            levels = Levels(source, self.width, self.height, self.stride)
+            dr.eval(levels.upper)
             with self._lock:
                 if self.levels is None:
                     self.levels = levels
         return self
 
-    def share_levels(self, other: 'Pyramid') -> None:
-        """Use ``other``'s levels (``other`` must hold the same texels)."""
-        self.levels = other.build().levels
+    def share_from(self, other: 'Pyramid', levels: bool) -> None:
+        """Use ``other``'s padded copy (and levels) — ``other`` must hold the same texels."""
+        self.base4 = other.prepare().base4
+        if levels:
+            self.levels = other.build().levels
 
     def nbytes(self) -> int:
-        n = dr.width(self.base) + (dr.width(self.levels.upper) if self.built else 0)
+        n = dr.width(self.base) + (dr.width(self.base4) if self.base4 is not None else 0)
+        n += dr.width(self.levels.upper) if self.built else 0
         return 4 * n
 
 
@@ -318,6 +364,7 @@ class LevelView:
         self.mip = mip
         pyr = mip.pyr
         self.base = isinstance(level, int) or len(pyr.sizes) == 1
+        self.packed = self.base and pyr.packed_base       # decided once per trace
         if self.base:
             if isinstance(level, int) and level != 0:
                 raise ValueError('only level 0 can be static')
@@ -336,8 +383,18 @@ class LevelView:
         pyr = self.mip.pyr
         iy, ix = mi.UInt32(iy), mi.UInt32(ix)
         if self.base:
-            return dr.gather(T, pyr.base, dr.fma(iy, self.mip.width, ix), active)
-        return dr.gather(T, pyr.levels.upper, dr.fma(iy, self.iw, ix + self.off), active)
+            index = dr.fma(iy, self.mip.width, ix)
+            if self.packed:
+                return _rgb(dr.gather(mi.Array4f, pyr.base4, index, active))
+            return dr.gather(T, pyr.base, index, active)
+        index = dr.fma(iy, self.iw, ix + self.off)
+        if pyr.stride == 4:
+            return _rgb(dr.gather(mi.Array4f, pyr.levels.upper, index, active))
+        return dr.gather(T, pyr.levels.upper, index, active)
+
+
+def _rgb(v4):
+    return mi.Color3f(v4.x, v4.y, v4.z)
 
 
 def footprint_width(tc, convention: float):

@@ -116,7 +116,7 @@ class Plugin(PbrtTexture):
                 raise p.error('encoding', 'applies to 8/16-bit image files only; "data" tensors '
                                           'are linear')
             self.data = self._checked_tensor(p.raw('data'), p)
-            self.pyramid, self.source = Pyramid(self.data), 'data tensor'
+            self.pyramid, self.source = Pyramid(self.data).prepare(), 'data tensor'
         else:
             if source == 'filename':
                 name = p.string('filename', None)
@@ -130,7 +130,7 @@ class Plugin(PbrtTexture):
                 img = self._call(lambda: decode_bitmap(bmp, encoding, 'the bitmap'), 'bitmap')
                 shared = None
                 self.data = mi.TensorXf(img.texels)
-                self.pyramid, self.source = Pyramid(self.data), 'bitmap object'
+                self.pyramid, self.source = Pyramid(self.data).prepare(), 'bitmap object'
                 self._warn_nonfinite(img.nonfinite)
             if shared is not None:
                 # Our own tensor object (so in-place parameter updates stay ours) over the shared
@@ -138,6 +138,7 @@ class Plugin(PbrtTexture):
                 self.data = mi.TensorXf(shared.pyramid.tensor)
                 self._shared = shared.pyramid
                 self.pyramid = Pyramid(self.data)
+                self.pyramid.share_from(self._shared, levels=False)
                 self._warn_nonfinite(shared.nonfinite)
         if self.filter_name in ('trilinear', 'ewa'):
             self._build_levels()
@@ -155,6 +156,7 @@ class Plugin(PbrtTexture):
             raise p.error('data', f'expected a TensorXf of shape (H, W, 1) or (H, W, 3), got '
                                   f'{type(value).__name__}' + (f' of shape {tuple(shape)}'
                                                                if shape is not None else ''))
+        dr.eval(value)      # a lazy tensor from another thread must not be extended on this one
         bad = int(dr.count(~dr.isfinite(value.array))[0])
         if bad:
             value = mi.TensorXf(dr.select(dr.isfinite(value.array), value.array, 0), value.shape)
@@ -167,11 +169,15 @@ class Plugin(PbrtTexture):
                                      f'replaced by 0')
 
     def _build_levels(self):
-        shared = getattr(self, '_shared', None)
-        if shared is not None and shared.tensor.array.index == self.data.array.index:
-            self.pyramid.share_levels(shared)
+        if self._sharing():
+            self.pyramid.share_from(self._shared, levels=True)
         else:
             self.pyramid.build()
+
+    def _sharing(self) -> bool:
+        """Does this texture still hold the shared (cached) texels of its file?"""
+        shared = getattr(self, '_shared', None)
+        return shared is not None and shared.tensor.array.index == self.data.array.index
 
     def _make_filter(self):
         self.mip = MIPMap(self.pyramid, self.wrap)
@@ -235,7 +241,7 @@ class Plugin(PbrtTexture):
                               f'(H, W, 3), got {tuple(t.shape)}')
         had_levels = self.pyramid.built
         self._shared = None
-        self.pyramid = Pyramid(self.data)
+        self.pyramid = Pyramid(self.data).prepare()
         if had_levels:
             self.pyramid.build()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')

@@ -1,5 +1,6 @@
 """Shared fixtures: the test variant (llvm_ad_rgb), plugin registration, small helpers."""
 
+import gc
 import os
 
 import pytest
@@ -16,11 +17,14 @@ mpt.register()
 
 @pytest.fixture(autouse=True)
 def _variant():
-    """Every test starts in the test variant with the plugins registered."""
+    """Every test starts in the test variant with the plugins registered, and ends by collecting
+    reference cycles (Mitsuba scenes and matplotlib figures form them), so no test inherits the
+    AD graph of variables an earlier test left in a cycle."""
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
     mpt.register()
     yield
+    gc.collect()
 
 
 def make_si(uv, duv_dx=None, duv_dy=None, p=None, n=None, dp_du=None, dp_dv=None):

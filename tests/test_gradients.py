@@ -218,3 +218,29 @@ def _dict_scene(texture, res):
             'sun': {'type': 'directional', 'direction': [0.2, -1, -0.3], 'irradiance': 3.0},
             'plane': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(20),
                       'bsdf': {'type': 'diffuse', 'reflectance': texture}}}
+
+
+def test_gradients_reach_texels_without_parameter_update(rng):
+    """Enabling gradients on `data` without params.update(): the RGBA-padded copy used for fast
+    lookups was made before, so lookups fall back to the tensor itself and level-0 gradients are
+    still exact (coarse levels need params.update(), as documented)."""
+    scene = scene_with(image_tex(rng, 'bilinear'), 'prb')
+    params = mi.traverse(scene)
+    key = 'plane.bsdf.reflectance.data'
+    base = np.array(params[key], dtype=np.float64)
+    direction = rng.normal(size=base.shape)
+    weights = mi.TensorXf(rng.random((RES, RES, 3)).astype(np.float32))
+    dr.enable_grad(params[key])                              # no params.update()
+    img = mi.render(scene, params, spp=SPP, seed=7, seed_grad=GRAD_SEED)
+    dr.backward(loss_of(img, weights))
+    ad = float((np.array(dr.grad(params[key]), dtype=np.float64) * direction).sum())
+    h = 0.5
+
+    def loss_at(arr):
+        params[key] = mi.TensorXf(arr.astype(np.float32))
+        params.update()
+        return float(np.array(loss_of(mi.render(scene, params, spp=SPP, seed=GRAD_SEED),
+                                      weights)).ravel()[0])
+
+    fd = (loss_at(base + h * direction) - loss_at(base - h * direction)) / (2 * h)
+    assert abs(fd) > 1e-6 and ad == pytest.approx(fd, rel=0.02)

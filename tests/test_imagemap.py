@@ -126,12 +126,16 @@ def test_pyramid_levels_match_reference(shape, rng):
     assert pyr.sizes == [(lv.shape[1], lv.shape[0]) for lv in want] == level_sizes(shape[1], shape[0])
     upper = np.array(pyr.levels.upper)
     offsets = np.array(pyr.levels.off)
+    stride = pyr.stride                                      # RGB levels are stored RGBA-padded
     for k, lv in enumerate(want[1:], start=1):
         h, w = lv.shape[:2]
-        got = upper[3 * offsets[k]: 3 * (offsets[k] + w * h)].reshape(h, w, 3)
-        np.testing.assert_allclose(got, lv, atol=2e-6)
-        assert abs(got.mean() - img.mean()) < 2e-6          # area averages keep the mean
-    assert pyr.nbytes() <= 1.34 * img.size * 4 + 64
+        got = upper[stride * offsets[k]: stride * (offsets[k] + w * h)].reshape(h, w, stride)
+        np.testing.assert_allclose(got[..., :3], lv, atol=2e-6)
+        assert abs(got[..., :3].mean() - img.mean()) < 2e-6  # area averages keep the mean
+        assert np.all(got[..., 3:] == 0)
+    # the pyramid (padded level 0 + coarser levels) is ≤ 4/3 of its padded base level
+    padded_base = img.shape[0] * img.shape[1] * stride * 4
+    assert pyr.nbytes() - img.size * 4 <= 1.34 * padded_base + 64
 
 
 # ------------------------------------------------------------------------------------ filters

@@ -77,10 +77,10 @@ def area_box_pyramid(img):
     pyr = Pyramid(mi.TensorXf(img.astype(np.float32))).build()
     upper = np.array(pyr.levels.upper, dtype=np.float64)
     off = np.array(pyr.levels.off)
-    c = img.shape[2]
+    c, stride = img.shape[2], pyr.stride
     levels = [img.astype(np.float64)]
     for k, (w, h) in enumerate(pyr.sizes[1:], start=1):
-        levels.append(upper[c * off[k]: c * (off[k] + w * h)].reshape(h, w, c))
+        levels.append(upper[stride * off[k]: stride * (off[k] + w * h)].reshape(h, w, stride)[..., :c])
     return levels
 
 
@@ -147,6 +147,7 @@ def run(lookups=300, seed=3, out=print):
         for kind, build in (('area-box (ours)', area_box_pyramid),
                             ('lanczos-pow2 (pbrt)', lanczos_pow2_pyramid)):
             levels = build(img)
+            # memory of the pyramid relative to the image, with the same texel layout
             mem = sum(lv.size for lv in levels) / img.size
             rmse = float(np.sqrt(np.mean((trilinear(levels, s, t, width_uv) - ref) ** 2)))
             rmse0 = float(np.sqrt(np.mean((bilinear(levels[0], s, t) - exact0) ** 2)))

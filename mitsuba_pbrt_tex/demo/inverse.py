@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import gc
 import os
 import resource
 import sys
@@ -144,6 +145,10 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
     plots(history, truth, finals, np.array(targets[0]), out_dir)
     for line in summary:
         log(line)
+    # matplotlib's and Mitsuba's reference cycles can keep the last scenes (and their AD graph)
+    # alive until the next collection; release them now for whatever the caller does next
+    del scenes, params, opt, targets
+    gc.collect()
     return history, summary
 
 
