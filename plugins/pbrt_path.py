@@ -208,8 +208,9 @@ class Plugin:
                                                      dpdx, dpdy)
                 si.duv_dx = dr.select(valid, duv_dx, 0)
                 si.duv_dy = dr.select(valid, duv_dy, 0)
-                first_duv_dx = dr.select(depth == 0, si.duv_dx, first_duv_dx)
-                first_duv_dy = dr.select(depth == 0, si.duv_dy, first_duv_dy)
+                if dr.hint(bool(self.aov_list), mode='scalar'):
+                    first_duv_dx = dr.select(depth == 0, si.duv_dx, first_duv_dx)
+                    first_duv_dy = dr.select(depth == 0, si.duv_dy, first_duv_dy)
 
             bsdf = si.bsdf(ray)
 
