@@ -83,8 +83,6 @@ class Plugin:
                                       f'{", ".join(AOV_CHANNELS)}')
         p.finish()
         self.total_spp = None
-        self._scene_needs = {}
-        self._footprints = {}
 
     def _spp_mode(self, p):
         if not p.has('spp_scale'):
@@ -108,22 +106,21 @@ class Plugin:
 
     # ------------------------------------------------------------------ what the scene needs
     def needs_differentials(self, scene) -> bool:
-        """Does any texture of the scene use differentials? (Prepares them; cached per scene.)"""
+        """Does any texture of the scene use differentials? (Also prepares them.)
+
+        Asked at every render, not cached: Mitsuba objects admit no weak references, an id()
+        may be reused by the next scene, and the traversal takes ~0.2 ms."""
         if not self.texture_differentials:
             return False
-        key = id(scene)
-        if key not in self._scene_needs:
-            nodes = mi.traverse(scene).hierarchy.keys()
-            textures = [n for n in nodes if isinstance(n, mi.Texture)]
-            self._scene_needs[key] = any([uses_differentials(t) for t in textures])
-        return self._scene_needs[key]
+        nodes = mi.traverse(scene).hierarchy.keys()
+        textures = [n for n in nodes if isinstance(n, mi.Texture)]
+        return any([uses_differentials(t) for t in textures])      # prepares every one
 
     def footprint(self, sensor) -> raydiff.CameraFootprint:
-        key = id(sensor)
-        if key not in self._footprints:
-            with dr.suspend_grad():
-                self._footprints[key] = raydiff.CameraFootprint(sensor)
-        return self._footprints[key]
+        """The camera approximation's minimum differentials, found anew at every render (the
+        camera may have moved; 512 rays)."""
+        with dr.suspend_grad():
+            return raydiff.CameraFootprint(sensor)
 
     def sample_rays(self, scene, sensor, sampler):
         """The base class's camera rays; remembers the sensor for the camera approximation."""
