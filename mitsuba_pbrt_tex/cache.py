@@ -14,7 +14,6 @@ class BuildOnceCache:
         self._lock = threading.Lock()
         self._entries: dict = {}
         self._key_locks: dict = {}
-        self.builds = 0
 
     def get(self, key, build):
         with self._lock:
@@ -29,7 +28,6 @@ class BuildOnceCache:
             with self._lock:
                 self._entries[key] = value
                 self._key_locks.pop(key, None)
-                self.builds += 1
             return value
 
     def clear(self) -> None:

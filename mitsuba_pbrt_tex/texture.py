@@ -36,9 +36,6 @@ class Kind:
     def from_float(self, value: mi.Float):
         raise NotImplementedError
 
-    def zero(self):
-        return self.from_float(mi.Float(0))
-
 
 class _Spectrum(Kind):
     name = 'spectrum'
