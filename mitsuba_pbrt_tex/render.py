@@ -108,10 +108,10 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
 
     from .outputs import write_exr, write_png
     names = None
-    if image.ndim == 3 and image.shape[2] > 3:
+    if image.ndim == 3 and image.shape[2] > 3:       # RGB [+ alpha] + the integrator's AOVs
         aovs = list(integrator.aov_names()) if hasattr(integrator, 'aov_names') else []
-        names = ['R', 'G', 'B'] + ([] if image.shape[2] == 3 else
-                                   (['A'] if image.shape[2] - 3 - len(aovs) == 1 else []) + aovs)
+        alpha = ['A'] if image.shape[2] - 3 - len(aovs) == 1 else []
+        names = ['R', 'G', 'B'] + alpha + aovs
     write_exr(exr_path, image, names)
     write_png(png_path, image[..., :3] if image.ndim == 3 else image)
     info = dict(scene=scene_path, exr=exr_path, png=png_path, spp=total, passes=passes,
