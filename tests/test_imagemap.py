@@ -467,3 +467,18 @@ def test_backward_reaches_texels_and_matches_finite_differences(filt, rng):
         e = e.reshape(img.shape)
         fd = (loss_at(img + e) - loss_at(img - e)) / 2
         assert grad.ravel()[k] == pytest.approx(fd, rel=1e-3, abs=1e-4)
+
+
+def test_ewa_weight_matches_pbrt_table():
+    """The computed weight equals pbrt's float32 table ``exp(-2·i/127) - exp(-2)`` at every r²
+    of every bucket: the polynomial's relative error is 3.6e-7, so 1e-6 of the entry (plus
+    float32 rounding of the difference) bounds it; entry 127 (r² ≥ 127/128) is excluded by the
+    loop's mask and must be exactly where R2_MAX puts it."""
+    from mitsuba_pbrt_tex.ewa import R2_MAX, lut_weight
+    table = (np.exp(np.float32(-2) * np.arange(128, dtype=np.float32) / np.float32(127))
+             - np.exp(np.float32(-2))).astype(np.float32)
+    assert table[127] == 0 and R2_MAX == 127 / 128
+    r2 = (np.arange(127)[:, None] + np.array([0.0, 0.25, 0.5, 0.999])[None, :]).ravel() / 128
+    got = A(lut_weight(mi.Float(r2.astype(np.float32))))
+    want = table[np.floor(r2.astype(np.float32) * 128).astype(int)]
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
