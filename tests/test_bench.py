@@ -33,6 +33,27 @@ def test_lookup_benchmark_runs():
     names = {r['method'] for r in rows}
     assert {'bitmap (bilinear)', 'ewa', 'trilinear'} <= names
     assert all(r['ratio'] > 0 for r in rows)
+    assert any(line.startswith('cache lines read per lookup') for line in out)
+
+
+def test_cache_line_counts():
+    """Hand-counted cases: a bilinear lookup inside one line reads 2 lines (two rows), one
+    straddling a line boundary 4. An EWA footprint far below a texel is at level 0 alone, its
+    ellipse a circle of radius just over 1 texel (the +1 texel²): centred on texel (8, 8) it
+    holds that texel and its 4 neighbours — texels 7–9 of row 8 (lines 1 and 2) and texel 8 of
+    rows 7 and 9 — 4 lines. A 12×1.5-texel horizontal footprint blends levels 0 and 1."""
+    from mitsuba_pbrt_tex.bench.lookups import cache_lines_bilinear, cache_lines_ewa
+    size = 64
+    u = np.array([(1 + 0.5 + 0.25) / size, (3 + 0.5 + 0.25) / size])   # x0 = 1 and x0 = 3
+    v = np.array([10.5 / size, 10.5 / size])
+    assert list(cache_lines_bilinear(size, u, v)) == [2, 4]
+    tiny = np.array([[1e-4, 0.0]])
+    centre = cache_lines_ewa(size, np.array([8.5 / size]), np.array([8.5 / size]), tiny,
+                             np.array([[0.0, 1e-4]]), 8)
+    assert list(centre) == [4]
+    wide = cache_lines_ewa(size, np.array([32.5 / size]), np.array([32.5 / size]),
+                           np.array([[12.0 / size, 0.0]]), np.array([[0.0, 1.5 / size]]), 8)
+    assert 8 < wide[0] < 30
 
 
 def test_pyramid_benchmark_runs():

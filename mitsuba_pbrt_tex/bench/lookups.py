@@ -8,6 +8,10 @@ kernels. Prints millions of lookups per second and the ratio to ``bitmap``.
 
 Point and bilinear are timed twice: as under Mitsuba's integrators (no pyramid: level 0, like
 ``bitmap``) and as under ``pbrt_path`` (the level the footprint selects).
+
+At random uv the filters are bound by memory latency, so the run also counts, for a sample of
+the same lookups, the distinct 64-byte cache lines (4 RGBA texels of a row) each lookup reads:
+EWA's count over ``bitmap``'s bounds the ratio EWA could reach if both paid the same per line.
 """
 
 from __future__ import annotations
@@ -79,7 +83,62 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
             f'{first[name] * 1e3:.0f} |')
         rows.append(dict(method=name, ms=t * 1e3, mlookups=count / t / 1e6, ratio=ratio,
                          target=target, first_ms=first[name] * 1e3))
+    if not coherent:
+        sample = slice(0, min(count, 2000))
+        d0 = np.stack([major_len * np.cos(ang), major_len * np.sin(ang)], 1)[sample]
+        d1 = np.stack([-minor_len * np.sin(ang), minor_len * np.cos(ang)], 1)[sample]
+        ewa_lines = cache_lines_ewa(size, u[sample], v[sample], d0, d1, max_anisotropy)
+        bilinear_lines = cache_lines_bilinear(size, u[sample], v[sample])
+        out(f'cache lines read per lookup (mean of {len(ewa_lines)}): bilinear '
+            f'{bilinear_lines.mean():.1f}, EWA {ewa_lines.mean():.1f} → at an equal cost per line '
+            f'EWA could reach {bilinear_lines.mean() / ewa_lines.mean():.3f}× bitmap')
     return rows
+
+
+TEXELS_PER_LINE = 4        # 64-byte lines of RGBA float32 texels, rows stored one after another
+
+
+def _lines(x, y, size):
+    """Distinct cache lines of the texels (x, y) (wrapped with repeat) of a size² level."""
+    return len(set(zip((y % size).tolist(), ((x % size) // TEXELS_PER_LINE).tolist())))
+
+
+def cache_lines_bilinear(size, u, v):
+    out = np.empty(len(u))
+    for k in range(len(u)):
+        x0, y0 = math.floor(u[k] * size - 0.5), math.floor(v[k] * size - 0.5)
+        xs, ys = np.array([x0, x0 + 1, x0, x0 + 1]), np.array([y0, y0, y0 + 1, y0 + 1])
+        out[k] = _lines(xs, ys, size)
+    return out
+
+
+def cache_lines_ewa(size, u, v, d0, d1, max_anisotropy):
+    """pbrt's EWA footprint (anisotropy clamp, level from the minor axis, the two levels it
+    blends, the +1 texel² ellipse) → distinct cache lines of the texels inside, per lookup."""
+    out = np.zeros(len(u))
+    for k in range(len(u)):
+        a, b = np.array(d0[k], float), np.array(d1[k], float)
+        if a @ a < b @ b:
+            a, b = b, a
+        major, minor = np.linalg.norm(a), np.linalg.norm(b)
+        if minor * max_anisotropy < major:
+            b *= major / (minor * max_anisotropy)
+            minor = major / max_anisotropy
+        lod = max(0.0, math.log2(minor * size))
+        levels = [int(lod)] + ([int(lod) + 1] if lod > int(lod) else [])
+        for lvl in levels:
+            n = max(1, size >> lvl)
+            (ds0, dt0), (ds1, dt1) = a * n, b * n
+            A, B, C = dt0 ** 2 + dt1 ** 2 + 1, -2 * (ds0 * dt0 + ds1 * dt1), ds0 ** 2 + ds1 ** 2 + 1
+            f = A * C - B * B / 4
+            s, t = u[k] * n - 0.5, v[k] * n - 0.5
+            r = int(math.ceil(math.sqrt(max(A, C)))) + 1        # the extents are √C and √A
+            xs, ys = np.meshgrid(np.arange(math.floor(s) - r, math.ceil(s) + r + 1),
+                                 np.arange(math.floor(t) - r, math.ceil(t) + r + 1))
+            ss, tt = xs - s, ys - t
+            inside = (A * ss * ss + B * ss * tt + C * tt * tt) / f < 1
+            out[k] += _lines(xs[inside], ys[inside], n)
+    return out
 
 
 def main(argv=None) -> int:
