@@ -3,14 +3,17 @@
 Storage
 -------
 Level 0 is *the user's tensor itself* (``data`` of ``pbrt_imagemap``, float32, shape (H, W, C)),
-so lookups at level 0 differentiate to it exactly as Mitsuba's ``bitmap`` does. RGB images also
-keep a padded RGBA copy of level 0 for lookups (one packet load per texel instead of three
-gathers; Mitsuba's ``bitmap``/Dr.Jit texture does the same). Levels 1… are box-filtered from it
-with Dr.Jit operations (so gradients reach the base texels through coarse levels too) and stored
-back to back in one flat float32 buffer, RGBA-padded for RGB. The pyramid (padded level 0 and
-the coarser levels) is at most 4/3 of its base level; with the tensor itself, an RGB texture
-takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory (Mitsuba's ``bitmap``: 1 + 4/3 ≈ 2.3×, without
-a pyramid); a 1-channel texture 4/3×.
+so lookups at level 0 without a pyramid differentiate to it exactly as Mitsuba's ``bitmap`` does.
+RGB images also keep a padded RGBA copy of level 0 for lookups (one packet load per texel instead
+of three gathers; Mitsuba's ``bitmap``/Dr.Jit texture does the same). When a filter needs the
+pyramid, all levels — level 0 copied, levels 1… box-filtered from it with Dr.Jit operations (so
+gradients reach the base texels through coarse levels too) — are stored back to back in one flat
+float32 buffer, RGBA-padded for RGB, which then also serves as the RGBA copy of level 0. A lookup
+at a per-lane level is then one gather per tap from one buffer, level 0 included (until gradients
+are enabled on the tensor after the build: then level-0 lanes read the tensor, see
+:meth:`MIPMap.split_levels`). The buffer is at most 4/3 of its base level; with the tensor itself,
+an RGB texture takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory (Mitsuba's ``bitmap``: 1 + 4/3 ≈
+2.3×, without a pyramid), a 1-channel texture 1 + 4/3 ≈ 2.3× (1× without a pyramid).
 
 Non-power-of-two images
 -----------------------
@@ -107,10 +110,11 @@ def _downsample(src: mi.Float, w: int, h: int, c: int, axis: int, n2: int) -> mi
     return acc
 
 
-def build_upper_levels(base: mi.Float, width: int, height: int, channels: int):
-    """Levels 1… of the pyramid as one flat buffer, plus their sizes and texel offsets."""
+def build_levels(base: mi.Float, width: int, height: int, channels: int):
+    """All levels of the pyramid, level 0 being ``base`` itself, as one flat buffer, plus their
+    sizes and texel offsets."""
     sizes = level_sizes(width, height)
-    parts, offsets, offset = [], [0], 0
+    parts, offsets, offset = [base], [0], width * height
     cur, (w, h) = base, sizes[0]
     for (w2, h2) in sizes[1:]:
         if w2 != w:
@@ -121,8 +125,7 @@ def build_upper_levels(base: mi.Float, width: int, height: int, channels: int):
         offset += w2 * h2
         parts.append(cur)
         w, h = w2, h2
-    upper = dr.concat(parts) if parts else mi.Float()
-    return upper, sizes, offsets
+    return dr.concat(parts), sizes, offsets
 
 
 # ------------------------------------------------------------------------------------ MIP map
@@ -135,13 +138,13 @@ def pad_rgb(flat: mi.Float) -> mi.Float:
 
 
 class Levels:
-    """Levels 1… of a pyramid: one flat buffer, their sizes, and per-level lookup tables."""
+    """All levels of a pyramid in one flat buffer (level 0 first, a copy of the base), their
+    sizes and texel offsets (also as a table for per-lane lookups) — so a lookup at a per-lane
+    level, 0 included, is one gather from one buffer."""
 
     def __init__(self, base: mi.Float, width: int, height: int, stride: int):
-        self.upper, self.sizes, offsets = build_upper_levels(base, width, height, stride)
-        self.w = mi.Float([s[0] for s in self.sizes])
-        self.h = mi.Float([s[1] for s in self.sizes])
-        self.off = mi.UInt32(offsets)
+        self.buffer, self.sizes, self.offsets = build_levels(base, width, height, stride)
+        self.off = mi.UInt32(self.offsets)
 
 
 class Pyramid:
@@ -151,8 +154,9 @@ class Pyramid:
     seen). RGB images also get a padded RGBA copy of it (``base4``): Dr.Jit gathers a texel of
     4 floats as one packet load, 3 floats as three gathers — 1.7× faster bilinear lookups
     (measured, ``bench lookups``), at the memory cost Mitsuba's ``bitmap`` pays too (it keeps the
-    tensor and a padded texture). :meth:`build` adds the coarser :class:`Levels`, stored padded
-    as well (``stride`` floats per texel)."""
+    tensor and a padded texture). :meth:`build` makes :class:`Levels`: all levels in one
+    buffer, padded as well (``stride`` floats per texel), whose level 0 then serves as
+    ``base4`` (same layout, so the separate copy is dropped)."""
 
     def __init__(self, tensor: mi.TensorXf):
         if len(tensor.shape) != 3 or tensor.shape[2] not in (1, 3) or min(tensor.shape[:2]) < 1:
@@ -181,6 +185,13 @@ class Pyramid:
         return self.levels is not None
 
     @property
+    def levels_hold_base(self) -> bool:
+        """Can lookups read level 0 from the levels' buffer? Not when gradients were enabled on
+        the tensor after it was built (its copy of level 0 would not carry them)."""
+        return self.built and (dr.grad_enabled(self.levels.buffer)
+                               or not dr.grad_enabled(self.base))
+
+    @property
     def sizes(self):
         return self.levels.sizes if self.levels is not None else [(self.width, self.height)]
 
@@ -207,22 +218,24 @@ class Pyramid:
             self.prepare()
             source = self.base4 if self.base4 is not None else self.base
             levels = Levels(source, self.width, self.height, self.stride)
-            dr.eval(levels.upper)
+            dr.eval(levels.buffer)
             with self._lock:
                 if self.levels is None:
                     self.levels = levels
+                    if self.channels == 3:
+                        self.base4 = levels.buffer      # its first texels are level 0, RGBA
         return self
 
     def share_from(self, other: 'Pyramid', levels: bool) -> None:
         """Use ``other``'s padded copy (and levels) — ``other`` must hold the same texels."""
-        self.base4 = other.prepare().base4
         if levels:
             self.levels = other.build().levels
+        self.base4 = other.prepare().base4
 
     def nbytes(self) -> int:
-        n = dr.width(self.base) + (dr.width(self.base4) if self.base4 is not None else 0)
-        n += dr.width(self.levels.upper) if self.built else 0
-        return 4 * n
+        if self.built:
+            return 4 * (dr.width(self.base) + dr.width(self.levels.buffer))
+        return 4 * (dr.width(self.base) + (dr.width(self.base4) if self.base4 is not None else 0))
 
 
 class MIPMap:
@@ -253,7 +266,7 @@ class MIPMap:
 
     # -------------------------------------------------------------------- per-lane level data
     def view(self, level) -> 'LevelView':
-        return LevelView(self, level)
+        return level if isinstance(level, LevelView) else LevelView(self, level)
 
     def fetch(self, level, x, y, active):
         """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here)."""
@@ -311,14 +324,23 @@ class MIPMap:
         return dr.log2(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
 
     def split_levels(self, level, fn, active):
-        """``fn(lvl, mask)`` for a per-lane ``level`` that may be 0: evaluated once for the lanes
-        at level 0 (static, base tensor) and once for the others (coarser-level buffer), so no
-        tap ever gathers from both buffers. Packets of neighbouring lookups usually share their
-        level, and then one of the two calls has no active lane."""
+        """``fn(lvl, mask)`` for a per-lane ``level`` that may be 0: once, reading every level
+        from the levels' buffer — or, where that buffer's level 0 would miss gradients enabled
+        on the tensor since, once for the lanes at level 0 (static: the tensor) and once for the
+        others, so no tap ever gathers from two buffers."""
         if not self.has_pyramid or len(self.sizes) == 1:
             return fn(0, active)
+        if self.pyr.levels_hold_base:
+            return fn(level, active)
         is0 = level == 0
         return dr.select(is0, fn(0, active & is0), fn(level, active & ~is0))
+
+    @property
+    def top_needs_coarsest(self) -> bool:
+        """Footprints beyond the top level get its single texel (pbrt). A point or bilinear
+        lookup on that 1×1 level returns it anyway — every tap wraps onto it — except with
+        ``black`` wrap, whose taps outside are 0: only then is it read separately."""
+        return self.wrap == 'black'
 
     def coarsest(self, active):
         """The texel of the 1×1 top level — the image mean — read without wrapping, as pbrt
@@ -333,8 +355,10 @@ class MIPMap:
             return lookup(0, st, active)
         last = len(self.sizes) - 1
         level = self.level_of(width)
+        ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last))
+        if not self.top_needs_coarsest:
+            return self.split_levels(ilevel, lambda lvl, m: lookup(lvl, st, m), active)
         top = level >= last
-        ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last - 1))
         value = self.split_levels(ilevel, lambda lvl, m: lookup(lvl, st, m), active & ~top)
         return dr.select(top, self.coarsest(active & top), value)
 
@@ -347,18 +371,26 @@ class MIPMap:
         l0 = dr.minimum(dr.floor(level), last - 1)
         frac = dr.clip(level - l0, 0, 1)
         il0 = mi.UInt32(l0)
-        run = active & ~top
-        v0 = self.split_levels(il0, lambda lvl, m: self.bilinear(lvl, st, m), run & (frac < 1))
-        v1 = self.bilinear(il0 + 1, st, run & (frac > 0))      # level ≥ 1
+        run = active & ~top if self.top_needs_coarsest else active
+        if self.pyr.levels_hold_base:
+            fine = self.view(il0)
+            coarse = fine.coarser()
+            v0 = self.bilinear(fine, st, run & (frac < 1))
+        else:
+            coarse = il0 + 1                                     # level ≥ 1
+            v0 = self.split_levels(il0, lambda lvl, m: self.bilinear(lvl, st, m), run & (frac < 1))
+        v1 = self.bilinear(coarse, st, run & (frac > 0))
         blend = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
+        if not self.top_needs_coarsest:
+            return blend
         return dr.select(top, self.coarsest(active & top), blend)
 
 
 class LevelView:
-    """Where the texels of one level live: the base tensor (static level 0) or the buffer of
-    coarser levels (a per-lane UInt32 level ≥ 1; lanes at level 0 must be masked off — use
-    :meth:`MIPMap.split_levels`). Size and offset are computed once and reused by every tap, and
-    each tap is a single gather from one buffer."""
+    """Where the texels of one level live: the base tensor or its RGBA copy (static level 0), or
+    the levels' buffer (a per-lane UInt32 level; see :meth:`MIPMap.split_levels` for when its
+    level 0 may be used). Size and offset are computed once and reused by every tap, and each
+    tap is a single gather from one buffer."""
 
     def __init__(self, mip: MIPMap, level):
         self.mip = mip
@@ -371,11 +403,26 @@ class LevelView:
             self.size = (float(mip.width), float(mip.height))
             self.inv_size = (1.0 / mip.width, 1.0 / mip.height)
         else:
-            lv = pyr.levels
-            self.size = (dr.gather(mi.Float, lv.w, level), dr.gather(mi.Float, lv.h, level))
-            self.off = dr.gather(mi.UInt32, lv.off, level)
+            # level sizes halve with floor, never below 1: max(1, floor(n / 2^level)), the
+            # power of two built from its exponent bits (exact); only the offset is looked up
+            inv_scale = dr.reinterpret_array(mi.Float, (127 - mi.UInt32(level)) << 23)
+            self.size = (dr.maximum(dr.floor(mip.width * inv_scale), 1),
+                         dr.maximum(dr.floor(mip.height * inv_scale), 1))
+            self.off = dr.gather(mi.UInt32, pyr.levels.off, level)
             self.iw = mi.UInt32(self.size[0])
             self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
+
+    def coarser(self) -> 'LevelView':
+        """The next level of a per-lane view (not past the top): sizes halved with floor,
+        never below 1, and the offset just after this level's texels — no lookup."""
+        view = object.__new__(LevelView)
+        view.mip, view.base, view.packed = self.mip, False, False
+        w, h = self.size
+        view.size = (dr.maximum(dr.floor(w * 0.5), 1), dr.maximum(dr.floor(h * 0.5), 1))
+        view.off = self.off + self.iw * mi.UInt32(h)
+        view.iw = mi.UInt32(view.size[0])
+        view.inv_size = (dr.rcp(view.size[0]), dr.rcp(view.size[1]))
+        return view
 
     def gather(self, iy, ix, active):
         """Texel at wrapped integer (ix, iy)."""
@@ -389,8 +436,8 @@ class LevelView:
             return dr.gather(T, pyr.base, index, active)
         index = dr.fma(iy, self.iw, ix + self.off)
         if pyr.stride == 4:
-            return _rgb(dr.gather(mi.Array4f, pyr.levels.upper, index, active))
-        return dr.gather(T, pyr.levels.upper, index, active)
+            return _rgb(dr.gather(mi.Array4f, pyr.levels.buffer, index, active))
+        return dr.gather(T, pyr.levels.buffer, index, active)
 
 
 def _rgb(v4):

@@ -118,21 +118,22 @@ def test_rgba_keeps_rgb_and_png_encodings():
 
 
 # ------------------------------------------------------------------------------------ pyramid
+@pytest.mark.parametrize('channels', [1, 3])
 @pytest.mark.parametrize('shape', [(1, 1), (1, 9), (9, 1), (37, 53), (64, 64), (48, 80)])
-def test_pyramid_levels_match_reference(shape, rng):
-    img = rng.random(shape + (3,))
+def test_pyramid_levels_match_reference(shape, channels, rng):
+    img = rng.random(shape + (channels,))
     pyr = Pyramid(mi.TensorXf(img.astype(np.float32))).build()
     want = ref.pyramid(img)
     assert pyr.sizes == [(lv.shape[1], lv.shape[0]) for lv in want] == level_sizes(shape[1], shape[0])
-    upper = np.array(pyr.levels.upper)
+    buffer = np.array(pyr.levels.buffer)                      # all levels, level 0 first
     offsets = np.array(pyr.levels.off)
     stride = pyr.stride                                      # RGB levels are stored RGBA-padded
-    for k, lv in enumerate(want[1:], start=1):
+    for k, lv in enumerate(want):
         h, w = lv.shape[:2]
-        got = upper[stride * offsets[k]: stride * (offsets[k] + w * h)].reshape(h, w, stride)
-        np.testing.assert_allclose(got[..., :3], lv, atol=2e-6)
-        assert abs(got[..., :3].mean() - img.mean()) < 2e-6  # area averages keep the mean
-        assert np.all(got[..., 3:] == 0)
+        got = buffer[stride * offsets[k]: stride * (offsets[k] + w * h)].reshape(h, w, stride)
+        np.testing.assert_allclose(got[..., :channels], lv, atol=2e-6)
+        assert abs(got[..., :channels].mean() - img.mean()) < 2e-6  # area averages keep the mean
+        assert np.all(got[..., channels:] == 0)
     # the pyramid (padded level 0 + coarser levels) is ≤ 4/3 of its padded base level
     padded_base = img.shape[0] * img.shape[1] * stride * 4
     assert pyr.nbytes() - img.size * 4 <= 1.34 * padded_base + 64
@@ -158,12 +159,15 @@ def test_magnification_equals_bilinear_level0(rng):
         np.testing.assert_allclose(A(imagemap(img, filter=f).eval(si)), bil, atol=2e-6)
 
 
+@pytest.mark.parametrize('wrap', ['repeat', 'black', 'clamp', 'mirror', 'octahedralsphere'])
 @pytest.mark.parametrize('filt', ['point', 'bilinear', 'trilinear', 'ewa'])
-def test_footprint_covering_texture_gives_mean(filt, rng):
+def test_footprint_covering_texture_gives_mean(filt, wrap, rng):
+    """Beyond the top level pbrt returns its single texel, the image mean — with every wrap
+    (also black) and at any uv, inside [0, 1]² or not."""
     img = rng.random((32, 32, 3))
-    tex = imagemap(img, filter=filt)
+    tex = imagemap(img, filter=filt, wrap=wrap)
     tex.prepare_differentials()
-    uv = rng.uniform(0, 1, (50, 2))
+    uv = rng.uniform(-2, 3, (50, 2))
     si = make_si(uv, np.tile([3.0, 0.0], (50, 1)), np.tile([0.0, 3.0], (50, 1)))
     np.testing.assert_allclose(A(tex.eval(si)), np.tile(img.mean((0, 1)), (50, 1)), atol=2e-6)
 
@@ -482,3 +486,26 @@ def test_ewa_weight_matches_pbrt_table():
     got = A(lut_weight(mi.Float(r2.astype(np.float32))))
     want = table[np.floor(r2.astype(np.float32) * 128).astype(int)]
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize('channels', [1, 3])
+@pytest.mark.parametrize('filt', ['trilinear', 'ewa'])
+def test_gradients_enabled_after_pyramid_reach_level0(filt, channels, rng):
+    """The pyramid keeps a copy of level 0 in its buffer; if gradients are enabled on the
+    tensor afterwards (no params.update()), level-0 lookups must read the tensor itself, so the
+    gradient of a lookup with a footprint of 0.01 texel (level 0) is its filter weights (they
+    sum to 1 per lookup), not zero."""
+    img = rng.random((16, 20, channels)).astype(np.float32)
+    tex = imagemap(img, filter=filt)
+    tex.prepare_differentials()
+    uv = rng.uniform(0, 1, (50, 2))
+    si = make_si(uv, np.tile([0.01 / 20, 0.0], (50, 1)), np.tile([0.0, 0.01 / 16], (50, 1)))
+    before = A(tex.eval_1(si))
+    params = mi.traverse(tex)
+    dr.enable_grad(params['data'])
+    value = tex.eval_1(si)
+    np.testing.assert_allclose(A(value), before, atol=1e-6)
+    dr.backward(dr.sum(value))
+    grad = np.array(dr.grad(params['data']))
+    total = 50.0 if channels == 1 else 50.0 * float(np.sum(mi.luminance(mi.Color3f(1, 1, 1))))
+    assert grad.sum() == pytest.approx(total, rel=1e-4)

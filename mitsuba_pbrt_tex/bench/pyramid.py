@@ -75,7 +75,7 @@ def area_box_pyramid(img):
     import mitsuba as mi
     from ..mipmap import Pyramid
     pyr = Pyramid(mi.TensorXf(img.astype(np.float32))).build()
-    upper = np.array(pyr.levels.upper, dtype=np.float64)
+    upper = np.array(pyr.levels.buffer, dtype=np.float64)
     off = np.array(pyr.levels.off)
     c, stride = img.shape[2], pyr.stride
     levels = [img.astype(np.float64)]
