@@ -35,7 +35,8 @@ lines (levels 0 and 1), against about 2.5 for a bilinear lookup, and one loop it
 about one DRAM latency whatever else it does. Reading aligned 4-texel blocks as one packet per
 iteration, software-pipelining the reads one iteration ahead, and walking two bands of rows at
 once were each tried and measured no faster (more work per iteration, or the same number of
-lines in flight).
+lines in flight); a first loop that only touches the footprint's lines, so that the weighting
+loop finds them in cache, was ~10% faster at random uv but 30% slower at coherent uv.
 """
 
 from __future__ import annotations
