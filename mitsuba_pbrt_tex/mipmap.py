@@ -164,9 +164,16 @@ class Pyramid:
         self.tensor = tensor
         self.height, self.width, self.channels = (int(s) for s in tensor.shape)
         self.stride = 4 if self.channels == 3 else 1
-        self.base4 = None                      # see prepare()
+        self._base4 = None                     # see prepare()
+        self._source: Pyramid | None = None    # see share_from()
         self.levels: Levels | None = None
         self._lock = threading.Lock()
+
+    @property
+    def base4(self) -> mi.Float | None:
+        """The RGBA copy of level 0 (RGB, after :meth:`prepare`): the levels' buffer once built,
+        and always the current one of the pyramid shared from."""
+        return self._source.base4 if self._source is not None else self._base4
 
     @property
     def base(self) -> mi.Float:
@@ -204,16 +211,20 @@ class Pyramid:
         is held while kernels run: Mitsuba constructs plugins on the pool that runs Dr.Jit's
         kernels, and a worker blocked on a lock while another waits for a kernel can deadlock
         it. Two threads may race to compute the same thing; the first result is kept."""
-        if self.channels == 3 and self.base4 is None:
+        if self._source is not None:
+            self._source.prepare()
+        elif self.channels == 3 and self._base4 is None:
             base4 = pad_rgb(self.base)
             dr.eval(base4)
             with self._lock:
-                if self.base4 is None:
-                    self.base4 = base4
+                if self._base4 is None:
+                    self._base4 = base4
         return self
 
     def build(self) -> 'Pyramid':
         """Build the coarser levels (once; thread-safe, as :meth:`prepare`)."""
+        if self.levels is None and self._source is not None:
+            self.levels = self._source.build().levels
         if self.levels is None:
             self.prepare()
             source = self.base4 if self.base4 is not None else self.base
@@ -223,14 +234,16 @@ class Pyramid:
                 if self.levels is None:
                     self.levels = levels
                     if self.channels == 3:
-                        self.base4 = levels.buffer      # its first texels are level 0, RGBA
+                        self._base4 = levels.buffer     # its first texels are level 0, RGBA
         return self
 
     def share_from(self, other: 'Pyramid', levels: bool) -> None:
-        """Use ``other``'s padded copy (and levels) — ``other`` must hold the same texels."""
+        """Use ``other``'s padded copy (and levels) — ``other`` must hold the same texels. The
+        copy is looked up in ``other`` at each use, so when ``other`` builds its levels (whose
+        buffer replaces the copy) the sharers drop the old copy too."""
+        self._source = other.prepare()
         if levels:
             self.levels = other.build().levels
-        self.base4 = other.prepare().base4
 
     def nbytes(self) -> int:
         if self.built:

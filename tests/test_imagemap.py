@@ -436,6 +436,21 @@ def test_scene_with_identical_textures_loads_in_parallel():
     assert len(scene.shapes()) == 8
 
 
+
+def test_file_textures_without_pyramid_drop_their_copy_when_another_builds_it():
+    """A bilinear and a trilinear texture of the same file share one RGBA copy of level 0: once
+    the trilinear one builds the pyramid, whose buffer starts with level 0, the bilinear one
+    reads that buffer too (no second copy is kept alive) and its lookups are unchanged."""
+    image_cache.clear()
+    path = os.path.join(DATA, 'rgb_13x17.exr')
+    bil = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'bilinear'})
+    si = make_si(np.random.default_rng(3).uniform(-1, 2, (40, 2)))
+    before = A(bil.eval(si))
+    tri = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'trilinear'})
+    assert not bil.pyramid.built and tri.pyramid.built
+    assert bil.pyramid.base4.index == tri.pyramid.levels.buffer.index
+    np.testing.assert_array_equal(A(bil.eval(si)), before)
+
 # ------------------------------------------------------------------------------------ gradients
 @pytest.mark.parametrize('filt', ['point', 'bilinear', 'trilinear', 'ewa'])
 def test_backward_reaches_texels_and_matches_finite_differences(filt, rng):
