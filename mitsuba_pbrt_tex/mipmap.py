@@ -334,7 +334,7 @@ class MIPMap:
     # -------------------------------------------------------------------- level selection
     def level_of(self, width):
         """Continuous level for a filter width in texture units (pbrt: L-1 + log2 width)."""
-        return dr.log2(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
+        return log2_positive(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
 
     def split_levels(self, level, fn, active):
         """``fn(lvl, mask)`` for a per-lane ``level`` that may be 0: once, reading every level
@@ -455,6 +455,30 @@ class LevelView:
 
 def _rgb(v4):
     return mi.Color3f(v4.x, v4.y, v4.z)
+
+
+def _log2_polynomial(degree: int = 8) -> list[float]:
+    """Coefficients of ``P`` with ``log2(1 + t) ≈ t·P(t)`` on [0, 1), least squares: 1.7e-7
+    absolute error in float32, and exactly 0 at t = 0 (powers of two give integer levels)."""
+    t = np.linspace(0, 1, 4097)[1:-1]
+    basis = np.vander(t, degree, increasing=True) * t[:, None]
+    return [float(np.float32(c)) for c in np.linalg.lstsq(basis, np.log2(1 + t), rcond=None)[0]]
+
+
+_LOG2_POLY = _log2_polynomial()
+
+
+def log2_positive(x):
+    """log2 of positive, finite, normal float32 ``x``: the exponent bits plus a polynomial in
+    the mantissa — for level selection, where Dr.Jit's general ``log2`` (special values,
+    range reduction) was a fifth of a trilinear lookup's time."""
+    bits = dr.reinterpret_array(mi.UInt32, x)
+    exponent = mi.Float(mi.Int32(bits >> 23) - 127)
+    t = dr.reinterpret_array(mi.Float, (bits & 0x7FFFFF) | 0x3F800000) - 1
+    value = mi.Float(_LOG2_POLY[-1])
+    for coef in _LOG2_POLY[-2::-1]:
+        value = dr.fma(value, t, coef)
+    return dr.fma(value, t, exponent)
 
 
 def footprint_width(tc, convention: float):
