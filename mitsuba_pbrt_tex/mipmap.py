@@ -143,8 +143,8 @@ class Levels:
     level, 0 included, is one gather from one buffer."""
 
     def __init__(self, base: mi.Float, width: int, height: int, stride: int):
-        self.buffer, self.sizes, self.offsets = build_levels(base, width, height, stride)
-        self.off = mi.UInt32(self.offsets)
+        self.buffer, self.sizes, offsets = build_levels(base, width, height, stride)
+        self.off = mi.UInt32(offsets)
 
 
 class Pyramid:
@@ -279,7 +279,7 @@ class MIPMap:
 
     # -------------------------------------------------------------------- per-lane level data
     def view(self, level) -> 'LevelView':
-        return level if isinstance(level, LevelView) else LevelView(self, level)
+        return LevelView(self, level)
 
     def fetch(self, level, x, y, active):
         """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here)."""
@@ -360,12 +360,17 @@ class MIPMap:
         return dr.if_stmt(args=(mask,), cond=mask, true_fn=fn,
                           false_fn=lambda m: dr.zeros(self.value_type()), label='pbrt_level')
 
-    @property
-    def top_needs_coarsest(self) -> bool:
-        """Footprints beyond the top level get its single texel (pbrt). A point or bilinear
-        lookup on that 1×1 level returns it anyway — every tap wraps onto it — except with
-        ``black`` wrap, whose taps outside are 0: only then is it read separately."""
-        return self.wrap == 'black'
+    def _top_lanes(self, level, last):
+        """Lanes whose footprint is beyond the top level: pbrt gives them its single texel. A
+        point or bilinear lookup on that 1×1 level returns it anyway — every tap wraps onto it —
+        except with ``black`` wrap, whose taps outside are 0: only then are they set apart (and
+        read by :meth:`_with_top`)."""
+        return level >= last if self.wrap == 'black' else mi.Bool(False)
+
+    def _with_top(self, top, active, value):
+        if self.wrap != 'black':
+            return value
+        return dr.select(top, self.coarsest(active & top), value)
 
     def coarsest(self, active):
         """The texel of the 1×1 top level — the image mean — read without wrapping, as pbrt
@@ -380,35 +385,25 @@ class MIPMap:
             return lookup(0, st, active)
         last = len(self.sizes) - 1
         level = self.level_of(width)
+        top = self._top_lanes(level, last)
         ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last))
-        if not self.top_needs_coarsest:
-            return self.split_levels(ilevel, lambda lvl, m: lookup(lvl, st, m), active)
-        top = level >= last
         value = self.split_levels(ilevel, lambda lvl, m: lookup(lvl, st, m), active & ~top)
-        return dr.select(top, self.coarsest(active & top), value)
+        return self._with_top(top, active, value)
 
     def trilinear(self, st, width, active):
         if not self.has_pyramid or len(self.sizes) == 1:
             return self.bilinear(0, st, active)
         last = len(self.sizes) - 1
         level = dr.maximum(self.level_of(width), 0)
-        top = level >= last
+        top = self._top_lanes(level, last)
         l0 = dr.minimum(dr.floor(level), last - 1)
         frac = dr.clip(level - l0, 0, 1)
         il0 = mi.UInt32(l0)
-        run = active & ~top if self.top_needs_coarsest else active
-        if self.pyr.levels_hold_base:
-            fine = self.view(il0)
-            coarse = fine.coarser()
-            v0 = self.bilinear(fine, st, run & (frac < 1))
-        else:
-            coarse = il0 + 1                                     # level ≥ 1
-            v0 = self.split_levels(il0, lambda lvl, m: self.bilinear(lvl, st, m), run & (frac < 1))
-        v1 = self.only_where(run & (frac > 0), lambda m: self.bilinear(coarse, st, m), st)
+        run = active & ~top
+        v0 = self.split_levels(il0, lambda lvl, m: self.bilinear(lvl, st, m), run & (frac < 1))
+        v1 = self.only_where(run & (frac > 0), lambda m: self.bilinear(il0 + 1, st, m), st)
         blend = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
-        if not self.top_needs_coarsest:
-            return blend
-        return dr.select(top, self.coarsest(active & top), blend)
+        return self._with_top(top, active, blend)
 
 
 class LevelView:
@@ -436,18 +431,6 @@ class LevelView:
             self.off = dr.gather(mi.UInt32, pyr.levels.off, level)
             self.iw = mi.UInt32(self.size[0])
             self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
-
-    def coarser(self) -> 'LevelView':
-        """The next level of a per-lane view (not past the top): sizes halved with floor,
-        never below 1, and the offset just after this level's texels — no lookup."""
-        view = object.__new__(LevelView)
-        view.mip, view.base, view.packed = self.mip, False, False
-        w, h = self.size
-        view.size = (dr.maximum(dr.floor(w * 0.5), 1), dr.maximum(dr.floor(h * 0.5), 1))
-        view.off = self.off + self.iw * mi.UInt32(h)
-        view.iw = mi.UInt32(view.size[0])
-        view.inv_size = (dr.rcp(view.size[0]), dr.rcp(view.size[1]))
-        return view
 
     def gather(self, iy, ix, active):
         """Texel at wrapped integer (ix, iy)."""

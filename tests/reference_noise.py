@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+# Perlin's table, typed in again rather than imported from the package: a slip in either copy
+# fails the tests instead of being shared by them.
 PERM = np.array([
     151, 160, 137, 91, 90, 15, 131, 13, 201, 95, 96, 53, 194, 233, 7, 225, 140, 36, 103, 30, 69,
     142, 8, 99, 37, 240, 21, 10, 23, 190, 6, 148, 247, 120, 234, 75, 0, 26, 197, 62, 94, 252, 219,
@@ -75,16 +77,23 @@ def _scaled(p, lam):
     return (np.float32(lam) * p.astype(np.float32)).astype(np.float64)
 
 
+def _full_octaves(pk, n_int, omega, f):
+    """Sum of ``o·f(noise(λ·p))`` over the ``n_int`` whole octaves (λ ×1.99 in float32, o ×ω),
+    and the (λ, o) of the next, partial octave."""
+    total, lam, o = 0.0, np.float32(1), 1.0
+    for _ in range(n_int):
+        total += o * f(noise3(_scaled(pk, lam))[0])
+        lam = np.float32(lam * np.float32(1.99))
+        o *= omega
+    return total, lam, o
+
+
 def fbm(p, dpdx, dpdy, omega, max_octaves, antialias=True):
     n = octaves(dpdx, dpdy, max_octaves) if antialias else np.full(len(p), float(max_octaves))
     out = np.empty(len(p))
     for k in range(len(p)):
         n_int = int(math.floor(n[k]))
-        total, lam, o = 0.0, np.float32(1), 1.0
-        for _ in range(n_int):
-            total += o * noise3(_scaled(p[k:k + 1], lam))[0]
-            lam = np.float32(lam * np.float32(1.99))
-            o *= omega
+        total, lam, o = _full_octaves(p[k:k + 1], n_int, omega, float)
         total += o * smoothstep(.3, .7, n[k] - n_int) * noise3(_scaled(p[k:k + 1], lam))[0]
         out[k] = total
     return out
@@ -95,11 +104,7 @@ def turbulence(p, dpdx, dpdy, omega, max_octaves, antialias=True):
     out = np.empty(len(p))
     for k in range(len(p)):
         n_int = int(math.floor(n[k]))
-        total, lam, o = 0.0, np.float32(1), 1.0
-        for _ in range(n_int):
-            total += o * abs(noise3(_scaled(p[k:k + 1], lam))[0])
-            lam = np.float32(lam * np.float32(1.99))
-            o *= omega
+        total, lam, o = _full_octaves(p[k:k + 1], n_int, omega, abs)
         part = smoothstep(.3, .7, n[k] - n_int)
         total += o * ((1 - part) * 0.2 + part * abs(noise3(_scaled(p[k:k + 1], lam))[0]))
         for _ in range(n_int, max_octaves):
