@@ -36,15 +36,25 @@ about one DRAM latency whatever else it does. Reading aligned 4-texel blocks as 
 iteration, software-pipelining the reads one iteration ahead, and walking two bands of rows at
 once were each tried and measured no faster (more work per iteration, or the same number of
 lines in flight); a first loop that only touches the footprint's lines, so that the weighting
-loop finds them in cache, was ~10% faster at random uv but 30% slower at coherent uv.
+loop finds them in cache, was ~10% faster at random uv but 30% slower at coherent uv. Storing
+the levels in tiles (4-texel-wide strips of 16–64 rows, or 16×16-texel blocks, so a footprint's
+lines lie close together in memory) was 17–25% faster at random uv but 6% slower at coherent uv
+(the extra index arithmetic), so rows stay plain; 2 MB pages were no faster (not a TLB limit).
+The limit is the memory holding the level, not the filter: ``bench lookups`` times the same
+ellipses at coarser levels (same texels and cache lines per lookup) — with levels 0 and 1 of a
+1024² texture (20 MB as RGBA float32) a lookup costs 3–4× what it costs on levels 1 and 2
+(5 MB, served from cache).
 """
 
 from __future__ import annotations
+
+import math
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .lookup_order import MIN_LEVEL_BYTES, can_reorder, in_tile_order
 from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
 LUT_SIZE = 128
@@ -63,25 +73,43 @@ def _finite(x):
 class EWAFilter:
     """pbrt's EWA over a :class:`~mitsuba_pbrt_tex.mipmap.MIPMap`."""
 
-    def __init__(self, mip, max_anisotropy: float):
+    def __init__(self, mip, max_anisotropy: float, reorder: bool = True):
         if not mip.has_pyramid:
             raise ValueError('EWA needs the MIP pyramid')
         self.mip = mip
         self.max_anisotropy = float(max_anisotropy)
+        #: Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)?
+        self.reorder = reorder
 
     def __call__(self, st, dst0, dst1, active):
         """``dst0 = (ds/dx, dt/dx)``, ``dst1 = (ds/dy, dt/dy)`` (Vector2f)."""
         mip = self.mip
+        # levels 0 … cached_from-1 are too large to stay in cache: lookups there gain from order
+        level0_bytes = 4 * mip.width * mip.height * mip.pyr.stride
+        cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
+        if not self.reorder or cached_from <= 0 or not can_reorder(dr.width(st)):
+            return self.filter(st, dst0, dst1, active)
+        active = mi.Bool(active)
+        uncached = active & (mip.level_of(self.axes(dst0, dst1)[3]) < cached_from)
+        return in_tile_order(self.filter, st, dst0, dst1, active, width=mip.width,
+                             height=mip.height, worth=uncached)
+
+    def axes(self, dst0, dst1):
+        """(major vector, minor vector, major length, minor length) after pbrt's anisotropy
+        clamp (non-finite derivatives count as 0)."""
         dst0 = mi.Vector2f(_finite(dst0.x), _finite(dst0.y))
         dst1 = mi.Vector2f(_finite(dst1.x), _finite(dst1.y))
         swap = dr.squared_norm(dst0) < dr.squared_norm(dst1)
         dst0, dst1 = dr.select(swap, dst1, dst0), dr.select(swap, dst0, dst1)
         major, minor = dr.norm(dst0), dr.norm(dst1)
-
         clamp = (minor * self.max_anisotropy < major) & (minor > 0)
         scale = dr.select(clamp, major / (minor * self.max_anisotropy), 1.0)
-        dst1 = dst1 * scale
-        minor = minor * scale
+        return dst0, dst1 * scale, major, minor * scale
+
+    def filter(self, st, dst0, dst1, active):
+        """The filter itself, lanes in the order given."""
+        mip = self.mip
+        dst0, dst1, _, minor = self.axes(dst0, dst1)
 
         degenerate = ~(minor > 0)
         n_levels = mip.n_levels

@@ -24,11 +24,12 @@ from .mipmap import MIPMap, footprint_width
 
 
 class TextureFilter:
-    def __init__(self, mip: MIPMap, kind: str, max_anisotropy: float, width_convention: float):
+    def __init__(self, mip: MIPMap, kind: str, max_anisotropy: float, width_convention: float,
+                 reorder: bool = True):
         self.mip = mip
         self.kind = kind
         self.width_convention = width_convention
-        self.ewa = EWAFilter(mip, max_anisotropy) if kind == 'ewa' else None
+        self.ewa = EWAFilter(mip, max_anisotropy, reorder) if kind == 'ewa' else None
 
     def __call__(self, tc, active):
         mip = self.mip

@@ -11,6 +11,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
+| sortlookups | boolean | true | `ewa`: filter a large batch of lookups sorted by texture tile, results in the caller's order (identical values; only outside symbolic loops/calls, see below) | no |
 | wrap | string | repeat | `repeat`, `black`, `clamp`, `mirror` or `octahedralsphere` | no |
 | wrap_mode | string | — | Mitsuba ``bitmap`` alias of wrap: `repeat`, `mirror` or `clamp` | no |
 | scale | float | 1 | factor applied to every texel value | yes |
@@ -42,6 +43,15 @@ is never built; ``pbrt_path`` (or calling ``tex.prepare_differentials()``) build
 ``trilinear`` and ``ewa`` build it at once. With zero differentials every filter is a bilinear
 lookup at level 0 (``point``: the nearest texel).
 
+Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
+random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
+call such as ``tex.eval(si)`` from Python, or Mitsuba's wavefront mode — ``ewa`` sorts it by the
+32×32-texel tile each lookup falls in, filters it in that order and returns the results in the
+caller's order: the same values, 3× faster at random uv on a 1024² texture (``bench lookups``).
+Batches under 16384 lookups, levels under 4 MB, batches already in coherent order, and lookups
+traced inside a symbolic loop or call (a render's kernel) run in the order given. See
+:mod:`mitsuba_pbrt_tex.lookup_order`.
+
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
 inside the AD graph by ``parameters_changed`` (``params.update()``), so gradients reach base texels
 through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
@@ -72,6 +82,7 @@ class Plugin(PbrtTexture):
         self.filter_name = p.enum('filter', 'bilinear', FILTERS, alias='filter_type',
                                   alias_choices={'nearest': 'point', 'bilinear': 'bilinear'})
         self.max_anisotropy = p.float('maxanisotropy', 8.0, lo=1.0)
+        self.sort_lookups = p.bool('sortlookups', True)
         self.wrap = p.enum('wrap', 'repeat', WRAP_MODES, alias='wrap_mode',
                            alias_choices={'repeat': 'repeat', 'mirror': 'mirror', 'clamp': 'clamp'})
         self.scale = self.jit_value('scale', p.float('scale', 1.0))
@@ -85,7 +96,8 @@ class Plugin(PbrtTexture):
         self.describe('source', self.source)
         self.describe('resolution', f'{self.pyramid.width}x{self.pyramid.height}x'
                                     f'{self.pyramid.channels}')
-        for name in ('filter_name', 'wrap', 'max_anisotropy', 'invert', 'width_convention'):
+        for name in ('filter_name', 'wrap', 'max_anisotropy', 'sort_lookups', 'invert',
+                     'width_convention'):
             self.describe(name.replace('_name', ''), getattr(self, name))
         self.describe('mapping', self.mapping.describe())
         self._make_filter()
@@ -182,7 +194,7 @@ class Plugin(PbrtTexture):
     def _make_filter(self):
         self.mip = MIPMap(self.pyramid, self.wrap)
         self.filter = TextureFilter(self.mip, self.filter_name, self.max_anisotropy,
-                                    WIDTH_CONVENTIONS[self.width_convention])
+                                    WIDTH_CONVENTIONS[self.width_convention], self.sort_lookups)
 
     # ------------------------------------------------------------------ evaluation
     def _value(self, si, active):

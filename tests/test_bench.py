@@ -34,6 +34,11 @@ def test_lookup_benchmark_runs():
     assert {'bitmap (bilinear)', 'ewa', 'trilinear'} <= names
     assert all(r['ratio'] > 0 for r in rows)
     assert any(line.startswith('cache lines read per lookup') for line in out)
+    # the sweep re-times EWA at the default minor axis and at each larger one
+    assert {'ewa, minor 1.5', 'ewa, minor 3', 'ewa, minor 6', 'ewa, minor 12',
+            'ewa, given order, minor 12'} <= names
+    assert sum(line.startswith('| 1.5 | 0, 1 |') or line.startswith('| 12 | 3, 4 |')
+               for line in out) == 2
 
 
 def test_cache_line_counts():

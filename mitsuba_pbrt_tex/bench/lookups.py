@@ -7,11 +7,18 @@ in the same process, interleaved, median of ``--repeats`` runs after a warm-up t
 kernels. Prints millions of lookups per second and the ratio to ``bitmap``.
 
 Point and bilinear are timed twice: as under Mitsuba's integrators (no pyramid: level 0, like
-``bitmap``) and as under ``pbrt_path`` (the level the footprint selects).
+``bitmap``) and as under ``pbrt_path`` (the level the footprint selects). EWA is timed twice as
+well: as this call gets it (the batch is evaluated, so ``ewa`` filters it sorted by texture tile,
+see :mod:`mitsuba_pbrt_tex.lookup_order`) and in the order given (``sortlookups`` false), which is
+what it costs inside a render's kernel, where lookups cannot be reordered.
 
 At random uv the filters are bound by memory latency, so the run also counts, for a sample of
 the same lookups, the distinct 64-byte cache lines (4 RGBA texels of a row) each lookup reads:
-EWA's count over ``bitmap``'s bounds the ratio EWA could reach if both paid the same per line.
+EWA's count over ``bitmap``'s bounds the ratio EWA in the given order could reach if both paid
+the same per line. It then times EWA again for larger minor axes (``--sweep``): the same ellipses in texels of
+coarser levels — the same number of texels and cache lines per lookup, on levels a quarter the
+size per step — which separates what the filter costs from what the memory holding its level
+costs.
 """
 
 from __future__ import annotations
@@ -21,11 +28,13 @@ import math
 
 import numpy as np
 
+#: EWA without sorting the batch by texture tile: as inside a render's kernel.
+GIVEN_ORDER = 'ewa (given order, as in a render kernel)'
 TARGETS = {'point (level 0)': 1.0, 'bilinear (level 0)': 1.0, 'trilinear': 0.5, 'ewa': 0.05}
 
 
 def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant='llvm_ad_rgb',
-        max_anisotropy=8.0, seed=1, coherent=False, out=print):
+        max_anisotropy=8.0, seed=1, coherent=False, out=print, sweep=(3.0, 6.0, 12.0)):
     import drjit as dr
     import mitsuba as mi
 
@@ -48,10 +57,20 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
         u, v = rng.random(count), rng.random(count)
     si.uv = mi.Point2f(u.astype(np.float32), v.astype(np.float32))
     ang = rng.uniform(0, math.pi, count)
-    major_len, minor_len = anisotropy * minor / size, minor / size
-    si.duv_dx = mi.Vector2f(major_len * np.cos(ang), major_len * np.sin(ang))
-    si.duv_dy = mi.Vector2f(-minor_len * np.sin(ang), minor_len * np.cos(ang))
-    dr.eval(si)
+
+    def footprints(minor):
+        """The derivative vectors of 8:1 (``anisotropy``) footprints with this minor axis."""
+        major_len, minor_len = anisotropy * minor / size, minor / size
+        return (np.stack([major_len * np.cos(ang), major_len * np.sin(ang)], 1),
+                np.stack([-minor_len * np.sin(ang), minor_len * np.cos(ang)], 1))
+
+    def set_footprints(minor):
+        d0, d1 = footprints(minor)
+        si.duv_dx = mi.Vector2f(d0[:, 0].astype(np.float32), d0[:, 1].astype(np.float32))
+        si.duv_dy = mi.Vector2f(d1[:, 0].astype(np.float32), d1[:, 1].astype(np.float32))
+        dr.eval(si)
+
+    set_footprints(minor)
 
     textures = {'bitmap (bilinear)': mi.load_dict(
         {'type': 'bitmap', 'data': mi.TensorXf(texels), 'raw': True, 'filter_type': 'bilinear'})}
@@ -59,9 +78,11 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
                                 ('point (MIP level)', 'point', True),
                                 ('bilinear (level 0)', 'bilinear', False),
                                 ('bilinear (MIP level)', 'bilinear', True),
-                                ('trilinear', 'trilinear', True), ('ewa', 'ewa', True)):
+                                ('trilinear', 'trilinear', True), ('ewa', 'ewa', True),
+                                (GIVEN_ORDER, 'ewa', True)):
         tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(texels), 'filter': filt,
-                            'maxanisotropy': max_anisotropy})
+                            'maxanisotropy': max_anisotropy,
+                            'sortlookups': name != GIVEN_ORDER})
         if prepare:
             tex.prepare_differentials()
         textures[name] = tex
@@ -83,15 +104,38 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
             f'{first[name] * 1e3:.0f} |')
         rows.append(dict(method=name, ms=t * 1e3, mlookups=count / t / 1e6, ratio=ratio,
                          target=target, first_ms=first[name] * 1e3))
-    if not coherent:
-        sample = slice(0, min(count, 2000))
-        d0 = np.stack([major_len * np.cos(ang), major_len * np.sin(ang)], 1)[sample]
-        d1 = np.stack([-minor_len * np.sin(ang), minor_len * np.cos(ang)], 1)[sample]
-        ewa_lines = cache_lines_ewa(size, u[sample], v[sample], d0, d1, max_anisotropy)
-        bilinear_lines = cache_lines_bilinear(size, u[sample], v[sample])
-        out(f'cache lines read per lookup (mean of {len(ewa_lines)}): bilinear '
-            f'{bilinear_lines.mean():.1f}, EWA {ewa_lines.mean():.1f} → at an equal cost per line '
-            f'EWA could reach {bilinear_lines.mean() / ewa_lines.mean():.3f}× bitmap')
+    if coherent:
+        return rows
+    sample = slice(0, min(count, 2000))
+
+    def ewa_lines(minor):
+        d0, d1 = footprints(minor)
+        return cache_lines_ewa(size, u[sample], v[sample], d0[sample], d1[sample],
+                               max_anisotropy).mean()
+
+    bilinear_lines = cache_lines_bilinear(size, u[sample], v[sample]).mean()
+    lines = ewa_lines(minor)
+    out(f'cache lines read per lookup (mean of {len(u[sample])}): bilinear '
+        f'{bilinear_lines:.1f}, EWA {lines:.1f} → at an equal cost per line '
+        f'EWA could reach {bilinear_lines / lines:.3f}× bitmap')
+    if sweep:
+        out('EWA by the levels its footprints select (same ellipses in texels, smaller levels):')
+        out('| minor axis (level-0 texels) | levels blended | their size MB | cache lines / lookup '
+            '| bitmap ms | ewa, given order: ms | vs bitmap | ewa (sorted) ms | vs bitmap |')
+        out('|---|---|---|---|---|---|---|---|---|')
+        trio = {k: fns[k] for k in ('bitmap (bilinear)', GIVEN_ORDER, 'ewa')}
+        for m in (minor, *sweep):
+            set_footprints(m)
+            t, _ = measure(trio, repeats)
+            level = max(0, int(math.floor(math.log2(m))))
+            mb = sum(16 * max(1, size >> lv) ** 2 for lv in (level, level + 1)) / 2 ** 20
+            tb, tg, ts = t['bitmap (bilinear)'], t[GIVEN_ORDER], t['ewa']
+            out(f'| {m:g} | {level}, {level + 1} | {mb:.2f} | {ewa_lines(m):.1f} | {tb * 1e3:.2f} '
+                f'| {tg * 1e3:.1f} | {tb / tg:.3f}× | {ts * 1e3:.1f} | {tb / ts:.3f}× |')
+            for name, tm in (('ewa, given order', tg), ('ewa', ts)):
+                rows.append(dict(method=f'{name}, minor {m:g}', ms=tm * 1e3,
+                                 mlookups=count / tm / 1e6, ratio=tb / tm, target=None,
+                                 first_ms=float('nan')))
     return rows
 
 
@@ -151,10 +195,14 @@ def main(argv=None) -> int:
     ap.add_argument('--maxanisotropy', type=float, default=8.0, help='EWA anisotropy clamp')
     ap.add_argument('--repeats', type=int, default=7)
     ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--sweep', default='3,6,12',
+                    help='comma-separated larger minor axes (texels) at which EWA is timed again '
+                         '(random uv; empty: none)')
     ap.add_argument('--coherent', action='store_true',
                     help='lookups in raster order over the texture (as from a render) instead of '
                          'at random uv')
     args = ap.parse_args(argv)
     run(args.size, args.count, args.anisotropy, args.minor, args.repeats, args.variant,
-        args.maxanisotropy, coherent=args.coherent)
+        args.maxanisotropy, coherent=args.coherent,
+        sweep=tuple(float(x) for x in args.sweep.split(',') if x.strip()))
     return 0
