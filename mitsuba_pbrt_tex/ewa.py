@@ -43,7 +43,10 @@ lines lie close together in memory) was 17–25% faster at random uv but 6% slow
 The limit is the memory holding the level, not the filter: ``bench lookups`` times the same
 ellipses at coarser levels (same texels and cache lines per lookup) — with levels 0 and 1 of a
 1024² texture (20 MB as RGBA float32) a lookup costs 3–4× what it costs on levels 1 and 2
-(5 MB, served from cache).
+(5 MB, served from cache). So :meth:`EWAFilter.__call__` hands batches that can be reordered —
+evaluated arrays, outside a symbolic loop or call — to :mod:`~mitsuba_pbrt_tex.lookup_order`,
+which filters them sorted by texture tile when enough of their lookups read such large levels
+(measured: 2.5–3.5× faster at random uv, the same values).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
-| sortlookups | boolean | true | `ewa`: filter a large batch of lookups sorted by texture tile, results in the caller's order (identical values; only outside symbolic loops/calls, see below) | no |
+| sortlookups | boolean | true | `ewa`: filter a large batch of scattered lookups sorted by texture tile, results in the caller's order (identical values, less waiting on memory; not inside symbolic loops/calls, where lookups cannot be reordered) | no |
 | wrap | string | repeat | `repeat`, `black`, `clamp`, `mirror` or `octahedralsphere` | no |
 | wrap_mode | string | — | Mitsuba ``bitmap`` alias of wrap: `repeat`, `mirror` or `clamp` | no |
 | scale | float | 1 | factor applied to every texel value | yes |
