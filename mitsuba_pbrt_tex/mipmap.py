@@ -22,7 +22,7 @@ before building a 2×2 box pyramid. We instead build the pyramid directly: level
 ``max(1, floor(n/2))`` texels per axis and each of its texels is the exact *area average* of the
 level-``l`` texels it covers (a 2-tap box for even sizes, a 3- or 4-tap box with fractional
 weights for odd sizes). Reasons, measured by ``python -m mitsuba_pbrt_tex bench pyramid``
-(see ``docs/pyramid.md``): the base level stays the original image (bilinear lookups match
+(report: ``mitsuba_pbrt_tex/bench/report/pyramid.md``): the base level stays the original image (bilinear lookups match
 ``bitmap`` exactly, while pbrt's resampled level 0 does not); memory stays ≤ 4/3 of the base
 instead of up to 4 × 4/3 (513×513 → 1024×1024); the resampling's ringing (negative lobes, clamped
 at 0 by pbrt) is absent; and the filtered-lookup error against a box-filtered reference is not
@@ -44,8 +44,9 @@ Filters here (EWA lives in :mod:`mitsuba_pbrt_tex.ewa`):
   blend between levels 0 and 1 like pbrt-v3.
 
 Footprint width (``trilinearwidth``): pbrt-v3 uses ``w = max(|ds/dx|, |dt/dx|, |ds/dy|, |dt/dy|)``
-(after PR #275), pbrt-v4 twice that. The default is chosen by measured error (see
-``docs/benchmark.md``); both are available.
+(after PR #275), pbrt-v4 twice that. The default is chosen by measured error (the
+*trilinear-width* scene of ``bench render``, ``mitsuba_pbrt_tex/bench/report/results.md``); both
+are available.
 """
 
 from __future__ import annotations
