@@ -47,10 +47,10 @@ Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch 
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
 call such as ``tex.eval(si)`` from Python, or Mitsuba's wavefront mode — ``ewa`` sorts it by the
 32×32-texel tile each lookup falls in, filters it in that order and returns the results in the
-caller's order: the same values, 3× faster at random uv on a 1024² texture (``bench lookups``).
-Batches under 16384 lookups, levels under 4 MB, batches already in coherent order, and lookups
-traced inside a symbolic loop or call (a render's kernel) run in the order given. See
-:mod:`mitsuba_pbrt_tex.lookup_order`.
+caller's order: the same values, 2.5–3.5× faster at random uv on a 1024² texture (``bench
+lookups``). Batches under 16384 lookups, batches with fewer than a quarter of their lookups on
+levels of 8 MB or more, batches already in coherent order, and lookups traced inside a symbolic
+loop or call (a render's kernel) run in the order given. See :mod:`mitsuba_pbrt_tex.lookup_order`.
 
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
 inside the AD graph by ``parameters_changed`` (``params.update()``), so gradients reach base texels
