@@ -7,16 +7,16 @@ the same number of texels). Sorting the batch by the texture tile its centre fal
 in that order and putting the results back in the caller's order makes neighbouring lanes read
 neighbouring texels — the lines are then mostly cache hits — and gives bit-identical results
 (each lane's arithmetic does not depend on the others). Measured at random uv on a 1024² RGB
-texture: EWA 3.0× faster including the sort; at coherent uv it is skipped (see below).
+texture: EWA 2.5–3.5× faster including the sort; at coherent uv it is skipped (see below).
 
 It is only possible where a batch exists as evaluated arrays — a call such as ``tex.eval(si)``
 from Python, or Mitsuba's wavefront mode — not inside a symbolic loop or call (a render's
-megakernel, where each lane runs on alone), in a frozen function, or where synchronisation is
-forbidden: there the lookups run in the order given. It also needs a batch large enough to pay
-for the sort (:data:`MIN_BATCH`) with enough lookups on levels too large to stay in cache
-(:data:`MIN_LEVEL_BYTES`, :data:`MIN_WORTH_FRACTION`), and is skipped when the batch is already
-coherent: when at least half of the lanes fall in the same tile as the lane before them (a raster
-of a render, for example). Finding out costs one small reduction.
+megakernel, whose lanes cannot be permuted mid-kernel), in a frozen function, or where
+synchronisation is forbidden: there the lookups run in the order given. It also needs a batch
+large enough to pay for the sort (:data:`MIN_BATCH`) with enough lookups on levels too large to
+stay in cache (:data:`MIN_LEVEL_BYTES`, :data:`MIN_WORTH_FRACTION`), and is skipped when the
+batch is already coherent: when at least half of the lanes fall in the same tile as the lane
+before them (a raster of a render, for example). Finding out costs one small reduction.
 
 Gradients pass through: the permutation is a gather (its adjoint a scatter-add), its inverse
 another gather.
