@@ -171,3 +171,34 @@ def test_sortlookups_must_be_boolean():
     with pytest.raises(Exception, match=r'pbrt_imagemap.*sortlookups.*true or false'):
         mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(np.ones((4, 4, 1))),
                       'filter': 'ewa', 'sortlookups': 'yes'})
+
+
+def test_wavefront_render_sorts_and_matches_megakernel(rng, sorts):
+    """Mitsuba's path tracer in wavefront mode (loops and calls evaluated, not symbolic) hands
+    the texture evaluated batches: they are sorted, and the image is the megakernel's."""
+    data = mi.TensorXf(rng.random((64, 64, 3)).astype(np.float32))
+    scene = mi.load_dict({
+        'type': 'scene', 'integrator': {'type': 'path'},
+        'sensor': {'type': 'perspective', 'fov': 60,
+                   'to_world': mi.ScalarTransform4f().look_at(origin=[0, -2, 1.5],
+                                                              target=[0, 0, 0], up=[0, 0, 1]),
+                   'film': {'type': 'hdrfilm', 'width': 32, 'height': 32,
+                            'rfilter': {'type': 'box'}},
+                   'sampler': {'type': 'independent', 'sample_count': 4}},
+        'rect': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().scale(3),
+                 'bsdf': {'type': 'diffuse', 'reflectance': {
+                     'type': 'pbrt_imagemap', 'data': data, 'filter': 'ewa', 'uscale': 4,
+                     'vscale': 4}}},
+        'light': {'type': 'constant'}})
+    megakernel = A(mi.render(scene, seed=1))
+    assert sorts == []
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    try:
+        for f in flags:
+            dr.set_flag(f, False)
+        wavefront = A(mi.render(scene, seed=1))
+    finally:
+        for f in flags:
+            dr.set_flag(f, True)
+    assert len(sorts) >= 1
+    np.testing.assert_array_equal(wavefront, megakernel)
