@@ -15,10 +15,10 @@ what it costs inside a render's kernel, where lookups cannot be reordered.
 At random uv the filters are bound by memory latency, so the run also counts, for a sample of
 the same lookups, the distinct 64-byte cache lines (4 RGBA texels of a row) each lookup reads:
 EWA's count over ``bitmap``'s bounds the ratio EWA in the given order could reach if both paid
-the same per line. It then times EWA again for larger minor axes (``--sweep``): the same ellipses in texels of
-coarser levels — the same number of texels and cache lines per lookup, on levels a quarter the
-size per step — which separates what the filter costs from what the memory holding its level
-costs.
+the same per line. It then times EWA again for larger minor axes (``--sweep``): the same
+ellipses in texels of coarser levels — the same number of texels and cache lines per lookup, on
+levels a quarter the size per step — which separates what the filter costs from what the memory
+holding its level costs.
 """
 
 from __future__ import annotations
@@ -127,7 +127,8 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
         for m in (minor, *sweep):
             set_footprints(m)
             t, _ = measure(trio, repeats)
-            level = max(0, int(math.floor(math.log2(m))))
+            # pbrt's level: log2 of the minor axis in level-0 texels, after the anisotropy clamp
+            level = max(0, int(math.floor(math.log2(m * max(1.0, anisotropy / max_anisotropy)))))
             mb = sum(16 * max(1, size >> lv) ** 2 for lv in (level, level + 1)) / 2 ** 20
             tb, tg, ts = t['bitmap (bilinear)'], t[GIVEN_ORDER], t['ewa']
             out(f'| {m:g} | {level}, {level + 1} | {mb:.2f} | {ewa_lines(m):.1f} | {tb * 1e3:.2f} '
