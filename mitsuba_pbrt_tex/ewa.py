@@ -57,7 +57,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .lookup_order import MIN_LEVEL_BYTES, can_reorder, in_tile_order
+from .lookup_order import MIN_LEVEL_BYTES, in_tile_order
 from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
 LUT_SIZE = 128
@@ -81,19 +81,21 @@ class EWAFilter:
             raise ValueError('EWA needs the MIP pyramid')
         self.mip = mip
         self.max_anisotropy = float(max_anisotropy)
-        #: Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)?
-        self.reorder = reorder
+        # Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)
+        # when levels 0 … cached_from-1 are too large to stay in cache (lookups there gain).
+        level0_bytes = 4 * mip.width * mip.height * mip.pyr.stride
+        cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
+        self.reorder_below = cached_from if reorder and cached_from > 0 else None
 
     def __call__(self, st, dst0, dst1, active):
         """``dst0 = (ds/dx, dt/dx)``, ``dst1 = (ds/dy, dt/dy)`` (Vector2f)."""
-        mip = self.mip
-        # levels 0 … cached_from-1 are too large to stay in cache: lookups there gain from order
-        level0_bytes = 4 * mip.width * mip.height * mip.pyr.stride
-        cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
-        if not self.reorder or cached_from <= 0 or not can_reorder(dr.width(st)):
+        if self.reorder_below is None:
             return self.filter(st, dst0, dst1, active)
-        active = mi.Bool(active)
-        uncached = active & (mip.level_of(self.axes(dst0, dst1)[3]) < cached_from)
+        mip, active = self.mip, mi.Bool(active)
+
+        def uncached():
+            return active & (mip.level_of(self.axes(dst0, dst1)[3]) < self.reorder_below)
+
         return in_tile_order(self.filter, st, dst0, dst1, active, width=mip.width,
                              height=mip.height, worth=uncached)
 

@@ -77,15 +77,17 @@ def worth_sorting(key: mi.UInt32, worth: mi.Bool | None = None) -> bool:
     return worth is None or int(counts[1][0]) >= MIN_WORTH_FRACTION * n
 
 
-def in_tile_order(fn, st, *args, width: int, height: int, worth: mi.Bool | None = None):
+def in_tile_order(fn, st, *args, width: int, height: int, worth=None):
     """``fn(st, *args)`` over the batch, evaluated in tile order where that pays (see the module
-    docstring and :func:`worth_sorting`); the result is in the caller's lane order either way.
-    ``args`` may hold arrays of the batch's width or of width 1 (broadcast, left as they are)."""
+    docstring and :func:`worth_sorting`; ``worth``: None or a function returning the lanes that
+    count, called only where the batch can be reordered); the result is in the caller's lane
+    order either way. ``args`` may hold arrays of the batch's width or of width 1 (broadcast,
+    left as they are)."""
     n = dr.width(st)
     if not can_reorder(n):
         return fn(st, *args)
     key = tile_key(st, width, height)
-    if not worth_sorting(key, worth):
+    if not worth_sorting(key, None if worth is None else worth()):
         return fn(st, *args)
     perm = dr.argsort(key)
     inverse = dr.empty(mi.UInt32, n)

@@ -24,6 +24,7 @@ holding its level costs.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 
 import numpy as np
@@ -108,6 +109,7 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
         return rows
     sample = slice(0, min(count, 2000))
 
+    @functools.cache
     def ewa_lines(minor):
         d0, d1 = footprints(minor)
         return cache_lines_ewa(size, u[sample], v[sample], d0[sample], d1[sample],
