@@ -8,6 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+import reference_mipmap as ref
 from conftest import A, make_si
 from mitsuba_pbrt_tex import ewa as ewa_module
 from mitsuba_pbrt_tex import lookup_order
@@ -75,6 +76,31 @@ def test_sorted_equals_given_order(channels, wrap, rng, sorts):
         np.testing.assert_array_equal(a, b)
     assert len(sorts) == 3                      # the sorted path was taken, once per call
     assert all(w == len(uv) for w in sorts)
+
+
+@pytest.mark.parametrize('shape', [(1, 1), (1, 7), (9, 1), (37, 53)])
+def test_sorted_against_numpy_pbrt(shape, rng, sorts, monkeypatch):
+    """The sorted path against the independent numpy transcription of pbrt's EWA (see
+    test_imagemap: 2e-5, lookups at table-bucket edges excluded), on tiny and odd images with uv
+    far outside [0, 1]. A one-tile image is coherent whatever the order and is not sorted; 37×53
+(10×14 tiles of the test's 4 texels) is."""
+    monkeypatch.setattr(ewa_module, 'MIN_LEVEL_BYTES', 1)
+    h, w = shape
+    img = rng.random((h, w, 3))
+    n = 300
+    uv = rng.uniform(-3, 4, (n, 2))
+    ang = rng.uniform(0, math.pi, n)
+    minor = np.exp(rng.uniform(np.log(0.2), np.log(4), n)) / max(h, w)
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * (8 * minor)[:, None]
+    d1 = np.stack([-np.sin(ang), np.cos(ang)], 1) * minor[:, None]
+    got = A(ewa_texture(img.astype(np.float32)).eval(make_si(uv, duv_dx=d0, duv_dy=d1)))
+    want, ambiguous = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], d0, d1, 8.0, 'repeat')
+    assert np.all(np.isfinite(got)) and ambiguous.mean() < 0.25
+    np.testing.assert_allclose(got[~ambiguous], want[~ambiguous], atol=2e-5)
+    if shape == (37, 53):
+        assert sorts == [n]
+    if shape == (1, 1):
+        assert sorts == []
 
 
 def test_gradients_match_given_order(rng, sorts):
