@@ -46,10 +46,6 @@ def spp_scale(spp: int, mode) -> float:
     return float(mode)
 
 
-def _finite3(v):
-    return dr.select(dr.all(dr.isfinite(v)), v, 0.0)
-
-
 def tangent_plane_offsets(p, n, o_x, d_x, o_y, d_y, active):
     """Offsets ``dp/dx, dp/dy`` of the offset rays' hits on the plane through p with normal n.
 
