@@ -76,28 +76,28 @@ def _finite(x):
 class EWAFilter:
     """pbrt's EWA over a :class:`~mitsuba_pbrt_tex.mipmap.MIPMap`."""
 
-    def __init__(self, mip, max_anisotropy: float, reorder: bool = True):
-        if not mip.has_pyramid:
-            raise ValueError('EWA needs the MIP pyramid')
-        self.mip = mip
+    def __init__(self, max_anisotropy: float, reorder: bool = True):
         self.max_anisotropy = float(max_anisotropy)
+        self.reorder = reorder
+
+    def __call__(self, mip, st, dst0, dst1, active):
+        """``dst0 = (ds/dx, dt/dx)``, ``dst1 = (ds/dy, dt/dy)`` (Vector2f); ``mip`` must hold
+        every level."""
+        if not mip.has_pyramid:
+            raise ValueError('EWA needs every level of the MIP pyramid')
         # Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)
         # when levels 0 … cached_from-1 are too large to stay in cache (lookups there gain).
         level0_bytes = 4 * mip.width * mip.height * mip.pyr.stride
         cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
-        self.reorder_below = cached_from if reorder and cached_from > 0 else None
-
-    def __call__(self, st, dst0, dst1, active):
-        """``dst0 = (ds/dx, dt/dx)``, ``dst1 = (ds/dy, dt/dy)`` (Vector2f)."""
-        if self.reorder_below is None:
-            return self.filter(st, dst0, dst1, active)
-        mip, active = self.mip, mi.Bool(active)
+        if not self.reorder or cached_from <= 0:
+            return self.filter(mip, st, dst0, dst1, active)
+        active = mi.Bool(active)
 
         def uncached():
-            return active & (mip.level_of(self.axes(dst0, dst1)[3]) < self.reorder_below)
+            return active & (mip.level_of(self.axes(dst0, dst1)[3]) < cached_from)
 
-        return in_tile_order(self.filter, st, dst0, dst1, active, width=mip.width,
-                             height=mip.height, worth=uncached)
+        return in_tile_order(lambda *a: self.filter(mip, *a), st, dst0, dst1, active,
+                             width=mip.width, height=mip.height, worth=uncached)
 
     def axes(self, dst0, dst1):
         """(major vector, minor vector, major length, minor length) after pbrt's anisotropy
@@ -111,9 +111,8 @@ class EWAFilter:
         scale = dr.select(clamp, major / (minor * self.max_anisotropy), 1.0)
         return dst0, dst1 * scale, major, minor * scale
 
-    def filter(self, st, dst0, dst1, active):
+    def filter(self, mip, st, dst0, dst1, active):
         """The filter itself, lanes in the order given."""
-        mip = self.mip
         dst0, dst1, _, minor = self.axes(dst0, dst1)
 
         degenerate = ~(minor > 0)
@@ -123,25 +122,18 @@ class EWAFilter:
         ilod = dr.floor(lod)
         frac = lod - ilod
         run = active & ~degenerate
-        v0 = mip.split_levels(mi.UInt32(ilod),
-                              lambda lvl, m: self.level(lvl if isinstance(lvl, int) else ilod,
-                                                        st, dst0, dst1, m),
-                              run & (frac < 1))
-        v1 = self.level(ilod + 1, st, dst0, dst1, run & (frac > 0))      # level ≥ 1
+        v0 = self.level(mip, ilod, st, dst0, dst1, run & (frac < 1))
+        v1 = self.level(mip, ilod + 1, st, dst0, dst1, run & (frac > 0))
         ewa = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
         fallback = mip.bilinear(0, st, active & degenerate)
         return dr.select(degenerate, fallback, ewa)
 
-    def level(self, flevel, st, dst0, dst1, active):
-        """The EWA sum at one level: static 0, or per lane (Float ≥ 1); levels ≥ L give the
+    def level(self, mip, flevel, st, dst0, dst1, active):
+        """The EWA sum at one level (per lane, a whole Float); levels beyond the last give the
         coarsest texel."""
-        mip = self.mip
         last = len(mip.sizes) - 1
-        if isinstance(flevel, int):
-            beyond, view = mi.Bool(False), mip.view(0)
-        else:
-            beyond = flevel > last
-            view = mip.view(mi.UInt32(dr.minimum(flevel, last)))
+        beyond = flevel > last
+        view = mip.view(mi.UInt32(dr.minimum(flevel, last)))
         w, h = view.size
 
         s = sanitize_coord(dr.fma(st.x, w, -0.5))

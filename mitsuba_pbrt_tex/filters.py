@@ -20,30 +20,35 @@ import drjit as dr
 import mitsuba as mi
 
 from .ewa import EWAFilter
-from .mipmap import MIPMap, footprint_width
+from .mipmap import MIPMap, Pyramid, footprint_width
 
 
 class TextureFilter:
-    def __init__(self, mip: MIPMap, kind: str, max_anisotropy: float, width_convention: float,
-                 reorder: bool = True):
-        self.mip = mip
-        self.kind = kind
-        self.width_convention = width_convention
-        self.ewa = EWAFilter(mip, max_anisotropy, reorder) if kind == 'ewa' else None
+    """One filter's options (pbrt's ``MIPMapFilterOptions`` plus the wrap mode); calls are pure
+    functions of the pyramid they are given, like pbrt's ``MIPMap::Filter``."""
 
-    def __call__(self, tc, active):
-        mip = self.mip
+    def __init__(self, kind: str, wrap: str, max_anisotropy: float, width_convention: float,
+                 reorder: bool = True):
+        self.kind = kind
+        self.wrap = wrap
+        self.width_convention = width_convention
+        self.ewa = EWAFilter(max_anisotropy, reorder) if kind == 'ewa' else None
+
+    def __call__(self, pyramid: Pyramid, tc, active):
+        """The filtered value at ``tc``: Float (1 channel) or Color3f (RGB). Gradients reach
+        ``pyramid.buffer`` (and through it the texels it was built from) and ``tc.st``."""
+        mip = MIPMap(pyramid, self.wrap)
         if self.kind == 'ewa':
-            return self.ewa(tc.st, mi.Vector2f(tc.dsdx, tc.dtdx), mi.Vector2f(tc.dsdy, tc.dtdy),
-                            active)
+            return self.ewa(mip, tc.st, mi.Vector2f(tc.dsdx, tc.dtdx),
+                            mi.Vector2f(tc.dsdy, tc.dtdy), active)
         width = footprint_width(tc, self.width_convention)
         if self.kind == 'trilinear':
             return mip.trilinear(tc.st, width, active)
         return mip.filter_single_level(self.kind, tc.st, width, active)
 
-    def gradient(self, tc, active):
+    def gradient(self, pyramid: Pyramid, tc, active):
         """(value, d value/ds, d value/dt) of the luminance (or single channel)."""
-        mip = self.mip
+        mip = MIPMap(pyramid, self.wrap)
         if self.kind == 'point':
             v = mip.filter_single_level('point', tc.st, footprint_width(tc, 1.0), active)
             return _lum(v), mi.Float(0), mi.Float(0)
@@ -52,14 +57,12 @@ class TextureFilter:
         last = len(mip.sizes) - 1
         level = dr.clip(mip.level_of(footprint_width(tc, self.width_convention)), 0, last)
         l0 = dr.floor(level)
-        frac = 0.0 if self.kind == 'bilinear' else level - l0
         il0 = mi.UInt32(l0)
-        g0 = mip.split_levels(il0, lambda lvl, m: mip.bilinear_gradient(lvl, tc.st, m), active)
+        g0 = mip.bilinear_gradient(il0, tc.st, active)
         if self.kind == 'bilinear':
             return g0
-        il1 = dr.minimum(il0 + 1, last)
-        g1 = mip.split_levels(il1, lambda lvl, m: mip.bilinear_gradient(lvl, tc.st, m),
-                              active & (frac > 0))
+        frac = level - l0
+        g1 = mip.bilinear_gradient(dr.minimum(il0 + 1, last), tc.st, active & (frac > 0))
         return tuple(dr.lerp(a, b, frac) for a, b in zip(g0, g1))
 
 

@@ -22,12 +22,12 @@ images are linear by definition, as in pbrt-v4):
 Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
 
 Non-finite texels are replaced by 0 with a warning that gives their count.
-Decoded files are cached as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
-path, modification time, size, encoding, variant): Mitsuba constructs plugins on worker threads
-and merges identical ones, so several textures may ask for the same file at once; the cache reads
-each file once under a per-key lock (the work under it — file decoding in numpy, one host copy
-into a Dr.Jit array — launches no kernel, so a waiting worker cannot starve it), and the MIP
-levels are built once on first request (see :meth:`~mitsuba_pbrt_tex.mipmap.Pyramid.build`). The
+Decoded files are cached as :class:`SharedImage` objects keyed by (real path, modification
+time, size, encoding, variant): Mitsuba constructs plugins on worker threads and merges identical
+ones, so several textures may ask for the same file at once; the cache reads each file once under
+a per-key lock (the work under it — file decoding in numpy, one host copy into a Dr.Jit array —
+launches no kernel, so a waiting worker cannot starve it), and its pyramids are built once on
+first request (see :meth:`SharedImage.pyramid`). The
 wrap mode is not part of the key because the pyramid does not depend on it (each coarse texel
 averages texels inside the image; see :mod:`mitsuba_pbrt_tex.mipmap`).
 """
@@ -43,7 +43,7 @@ import mitsuba as mi
 import numpy as np
 
 from .cache import BuildOnceCache
-from .mipmap import Pyramid
+from .mipmap import Pyramid, build_pyramid
 
 
 class ImageError(ValueError):
@@ -207,14 +207,41 @@ def finish_texels(texels: np.ndarray, encoding: Encoding, bit_depth: str) -> Dec
 
 
 # ---------------------------------------------------------------------------------- cache
-@dataclass
 class SharedImage:
-    """A decoded file as shared between textures: its :class:`Pyramid` and how it was decoded."""
+    """A decoded file as shared between textures: its texels, how they were decoded, and its
+    pyramids (built on first request, once).
 
-    pyramid: Pyramid
-    encoding: Encoding
-    bit_depth: str
-    nonfinite: int
+    Textures built on different worker threads share it, so a pyramid is built with no lock held
+    (Mitsuba constructs plugins on the pool that runs Dr.Jit's kernels: a worker blocked on a
+    lock while another waits for a kernel can deadlock it) and evaluated before it is published
+    (a lazy expression recorded on one thread must not be extended on another; Dr.Jit's scopes
+    are per thread). Two threads may race to build the same pyramid; the first one is kept."""
+
+    def __init__(self, texels: np.ndarray, encoding: Encoding, bit_depth: str, nonfinite: int):
+        self.tensor = mi.TensorXf(texels)
+        self.encoding, self.bit_depth, self.nonfinite = encoding, bit_depth, nonfinite
+        self._complete: Pyramid | None = None     # every level
+        self._level0: Pyramid | None = None       # level 0 alone, until a complete one exists
+        self._lock = threading.Lock()
+
+    def built(self, levels: bool) -> Pyramid | None:
+        """The pyramid already built that serves a request (a complete one serves both)."""
+        with self._lock:
+            return self._complete if levels or self._complete is not None else self._level0
+
+    def pyramid(self, levels: bool) -> Pyramid:
+        """The file's pyramid: every level, or (``levels`` false) at least level 0."""
+        pyr = self.built(levels)
+        if pyr is not None:
+            return pyr
+        pyr = build_pyramid(self.tensor, levels)
+        with self._lock:
+            if levels:
+                self._complete = self._complete or pyr
+                self._level0 = None          # the complete one serves level-0 requests now
+                return self._complete
+            self._level0 = self._level0 or pyr
+            return self._complete or self._level0
 
 
 image_cache = BuildOnceCache()
@@ -227,7 +254,7 @@ def file_key(path: str) -> tuple:
 
 
 def load_image(path: str, encoding: Encoding | None) -> SharedImage:
-    """The texels of ``path`` as a shared :class:`Pyramid` (built once per file, encoding and
+    """The texels of ``path`` as a :class:`SharedImage` (read once per file, encoding and
     variant; the key includes the modification time, so edited files are re-read)."""
     if not os.path.isfile(path):
         raise ImageError(f'file "{path}" does not exist')
@@ -235,7 +262,6 @@ def load_image(path: str, encoding: Encoding | None) -> SharedImage:
 
     def build():
         img = read_image(path, encoding)
-        return SharedImage(Pyramid(mi.TensorXf(img.texels)), img.encoding, img.bit_depth,
-                           img.nonfinite)
+        return SharedImage(img.texels, img.encoding, img.bit_depth, img.nonfinite)
 
     return image_cache.get(key, build)

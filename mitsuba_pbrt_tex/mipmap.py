@@ -1,19 +1,28 @@
 """MIP maps (pbrt section 10.4.3): the pyramid, texel fetches, point/bilinear/trilinear filters.
 
-Storage
--------
-Level 0 is *the user's tensor itself* (``data`` of ``pbrt_imagemap``, float32, shape (H, W, C)),
-so lookups at level 0 without a pyramid differentiate to it exactly as Mitsuba's ``bitmap`` does.
-RGB images also keep a padded RGBA copy of level 0 for lookups (one packet load per texel instead
-of three gathers; Mitsuba's ``bitmap``/Dr.Jit texture does the same). When a filter needs the
-pyramid, all levels — level 0 copied, levels 1… box-filtered from it with Dr.Jit operations (so
-gradients reach the base texels through coarse levels too) — are stored back to back in one flat
-float32 buffer, RGBA-padded for RGB, which then also serves as the RGBA copy of level 0. A lookup
-at a per-lane level is then one gather per tap from one buffer, level 0 included (until gradients
-are enabled on the tensor after the build: then level-0 lanes read the tensor, see
-:meth:`MIPMap.split_levels`). The buffer is at most 4/3 of its base level; with the tensor itself,
-an RGB texture takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory (Mitsuba's ``bitmap``: 1 + 4/3 ≈
-2.3×, without a pyramid), a 1-channel texture 1 + 4/3 ≈ 2.3× (1× without a pyramid).
+Storage: the pyramid is one value
+---------------------------------
+:func:`build_pyramid` is a pure function of the texels (the user's ``data`` tensor, float32,
+shape (H, W, C)): it returns a :class:`Pyramid` whose levels lie back to back in *one* flat float32
+buffer — level 0 first, RGBA-padded for RGB images (Dr.Jit gathers a texel of 4 floats as one
+packet load, 3 floats as three gathers: 1.7× faster bilinear lookups, measured by ``bench
+lookups``; Mitsuba's ``bitmap`` pads too), then levels 1, 2, … box-filtered from it with Dr.Jit
+operations, so gradients reach the base texels through every level. A texture that only ever
+reads level 0 (point and bilinear under Mitsuba's integrators, which give a zero footprint) asks
+for level 0 alone and never pays for the others. Nothing in a pyramid changes after it is built:
+a texture whose texels change builds a new one (``parameters_changed``), and a lookup is a pure
+function of (pyramid, wrap mode, coordinates) — :class:`MIPMap` is that pair, made per lookup.
+
+So gradients have one path: from a lookup to the buffer, from the buffer to the tensor it was
+built from. A pyramid built while gradients are enabled on the tensor stays in its AD graph (also
+when it is built lazily during a render, see ``pbrt_imagemap``). The pyramid is a Dr.Jit struct
+(``DRJIT_STRUCT``): frozen functions (``dr.freeze``) see its buffer as an input and record its
+rebuild by ``params.update()`` inside a frozen step.
+
+Memory: the buffer is at most 4/3 of its base level (RGBA for RGB); with the tensor, an RGB
+texture takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory with all levels, 1 + 4/3 ≈ 2.3× with level 0
+alone (Mitsuba's ``bitmap``: 2.3×, without a pyramid); a 1-channel texture 1 + 4/3 ≈ 2.3×, and
+1× with level 0 alone (its buffer is then the tensor's own array).
 
 Non-power-of-two images
 -----------------------
@@ -52,7 +61,6 @@ are available.
 from __future__ import annotations
 
 import math
-import threading
 
 import drjit as dr
 import mitsuba as mi
@@ -111,17 +119,17 @@ def _downsample(src: mi.Float, w: int, h: int, c: int, axis: int, n2: int) -> mi
     return acc
 
 
-def build_levels(base: mi.Float, width: int, height: int, channels: int):
-    """All levels of the pyramid, level 0 being ``base`` itself, as one flat buffer, plus their
-    sizes and texel offsets."""
+def build_levels(level0: mi.Float, width: int, height: int, stride: int):
+    """``level0`` followed by every coarser level, as one flat buffer, plus the level sizes and
+    texel offsets."""
     sizes = level_sizes(width, height)
-    parts, offsets, offset = [base], [0], width * height
-    cur, (w, h) = base, sizes[0]
+    parts, offsets, offset = [level0], [0], width * height
+    cur, (w, h) = level0, sizes[0]
     for (w2, h2) in sizes[1:]:
         if w2 != w:
-            cur = _downsample(cur, w, h, channels, 0, w2)
+            cur = _downsample(cur, w, h, stride, 0, w2)
         if h2 != h:
-            cur = _downsample(cur, w2, h, channels, 1, h2)
+            cur = _downsample(cur, w2, h, stride, 1, h2)
         offsets.append(offset)
         offset += w2 * h2
         parts.append(cur)
@@ -129,7 +137,7 @@ def build_levels(base: mi.Float, width: int, height: int, channels: int):
     return dr.concat(parts), sizes, offsets
 
 
-# ------------------------------------------------------------------------------------ MIP map
+# ------------------------------------------------------------------------------------ pyramid
 def pad_rgb(flat: mi.Float) -> mi.Float:
     """RGB texels (3 floats each) → RGBA (4 floats each, A = 0), with Dr.Jit gathers (so
     gradients flow back to the RGB texels)."""
@@ -138,122 +146,59 @@ def pad_rgb(flat: mi.Float) -> mi.Float:
     return dr.gather(mi.Float, flat, (idx >> 2) * 3 + dr.minimum(ch, 2), ch < 3)
 
 
-class Levels:
-    """All levels of a pyramid in one flat buffer (level 0 first, a copy of the base), their
-    sizes and texel offsets (also as a table for per-lane lookups) — so a lookup at a per-lane
-    level, 0 included, is one gather from one buffer."""
-
-    def __init__(self, base: mi.Float, width: int, height: int, stride: int):
-        self.buffer, self.sizes, offsets = build_levels(base, width, height, stride)
-        self.off = mi.UInt32(offsets)
-
-
 class Pyramid:
-    """The texels of one image.
+    """The levels of one image in one flat float32 buffer (see the module docstring): level 0
+    first, ``stride`` floats per texel (4 for RGB, 1 for 1-channel images), level ``l`` of size
+    ``sizes[l]`` starting at texel ``off[l]``. Made by :func:`build_pyramid`, never changed.
 
-    Level 0 is ``tensor`` itself (read at lookup time, so enabling gradients on it is always
-    seen). RGB images also get a padded RGBA copy of it (``base4``): Dr.Jit gathers a texel of
-    4 floats as one packet load, 3 floats as three gathers — 1.7× faster bilinear lookups
-    (measured, ``bench lookups``), at the memory cost Mitsuba's ``bitmap`` pays too (it keeps the
-    tensor and a padded texture). :meth:`build` makes :class:`Levels`: all levels in one
-    buffer, padded as well (``stride`` floats per texel), whose level 0 then serves as
-    ``base4`` (same layout, so the separate copy is dropped)."""
+    A Dr.Jit struct: ``buffer`` and ``off`` are what Dr.Jit traverses (frozen functions); the
+    rest is static shape information."""
 
-    def __init__(self, tensor: mi.TensorXf):
-        if len(tensor.shape) != 3 or tensor.shape[2] not in (1, 3) or min(tensor.shape[:2]) < 1:
-            raise ValueError(f'expected an (H, W, 1|3) tensor, got shape {tuple(tensor.shape)}')
-        self.tensor = tensor
-        self.height, self.width, self.channels = (int(s) for s in tensor.shape)
-        self.stride = 4 if self.channels == 3 else 1
-        self._base4 = None                     # see prepare()
-        self._source: Pyramid | None = None    # see share_from()
-        self.levels: Levels | None = None
-        self._lock = threading.Lock()
+    DRJIT_STRUCT = {'buffer': object, 'off': object}
+
+    def __init__(self, buffer=None, off=None, width: int = 1, height: int = 1,
+                 channels: int = 1, sizes=None):
+        self.buffer = buffer
+        self.off = off
+        self.width, self.height, self.channels = width, height, channels
+        self.sizes = list(sizes) if sizes is not None else [(width, height)]
 
     @property
-    def base4(self) -> mi.Float | None:
-        """The RGBA copy of level 0 (RGB, after :meth:`prepare`): the levels' buffer once built,
-        and always the current one of the pyramid shared from."""
-        return self._source.base4 if self._source is not None else self._base4
+    def stride(self) -> int:
+        return 4 if self.channels == 3 else 1
 
     @property
-    def base(self) -> mi.Float:
-        return self.tensor.array
-
-    @property
-    def packed_base(self) -> bool:
-        """Use the padded copy of level 0? Not when gradients were enabled on the tensor after
-        the copy was made (it would not carry them): then gather the tensor itself."""
-        if self.base4 is None:
-            return False
-        return dr.grad_enabled(self.base4) or not dr.grad_enabled(self.base)
-
-    @property
-    def built(self) -> bool:
-        return self.levels is not None
-
-    @property
-    def levels_hold_base(self) -> bool:
-        """Can lookups read level 0 from the levels' buffer? Not when gradients were enabled on
-        the tensor after it was built (its copy of level 0 would not carry them)."""
-        return self.built and (dr.grad_enabled(self.levels.buffer)
-                               or not dr.grad_enabled(self.base))
-
-    @property
-    def sizes(self):
-        return self.levels.sizes if self.levels is not None else [(self.width, self.height)]
-
-    def prepare(self) -> 'Pyramid':
-        """Make the padded RGBA copy of level 0 (RGB images; once; thread-safe).
-
-        Shared pyramids are used by textures constructed on different worker threads, so what
-        they hold is *evaluated* before it is published: a lazy Dr.Jit expression recorded on
-        one thread must not be extended on another (Dr.Jit's scopes are per thread). And no lock
-        is held while kernels run: Mitsuba constructs plugins on the pool that runs Dr.Jit's
-        kernels, and a worker blocked on a lock while another waits for a kernel can deadlock
-        it. Two threads may race to compute the same thing; the first result is kept."""
-        if self._source is not None:
-            self._source.prepare()
-        elif self.channels == 3 and self._base4 is None:
-            base4 = pad_rgb(self.base)
-            dr.eval(base4)
-            with self._lock:
-                if self._base4 is None:
-                    self._base4 = base4
-        return self
-
-    def build(self) -> 'Pyramid':
-        """Build the coarser levels (once; thread-safe, as :meth:`prepare`)."""
-        if self.levels is None and self._source is not None:
-            self.levels = self._source.build().levels
-        if self.levels is None:
-            self.prepare()
-            source = self.base4 if self.base4 is not None else self.base
-            levels = Levels(source, self.width, self.height, self.stride)
-            dr.eval(levels.buffer)
-            with self._lock:
-                if self.levels is None:
-                    self.levels = levels
-                    if self.channels == 3:
-                        self._base4 = levels.buffer     # its first texels are level 0, RGBA
-        return self
-
-    def share_from(self, other: 'Pyramid', levels: bool) -> None:
-        """Use ``other``'s padded copy (and levels) — ``other`` must hold the same texels. The
-        copy is looked up in ``other`` at each use, so when ``other`` builds its levels (whose
-        buffer replaces the copy) the sharers drop the old copy too."""
-        self._source = other.prepare()
-        if levels:
-            self.levels = other.build().levels
+    def complete(self) -> bool:
+        """Does it hold every level (else level 0 alone)?"""
+        return len(self.sizes) == len(level_sizes(self.width, self.height))
 
     def nbytes(self) -> int:
-        if self.built:
-            return 4 * (dr.width(self.base) + dr.width(self.levels.buffer))
-        return 4 * (dr.width(self.base) + (dr.width(self.base4) if self.base4 is not None else 0))
+        return 4 * dr.width(self.buffer)
 
 
+def build_pyramid(tensor: mi.TensorXf, levels: bool = True) -> Pyramid:
+    """The :class:`Pyramid` of ``tensor`` (H, W, 1|3): level 0 alone, or every level. A pure
+    function of the texels: gradients enabled on ``tensor`` reach every level of the result. The
+    buffer is evaluated (a pyramid may be shared by textures built on other threads, and lookups
+    then read it as it is)."""
+    if len(tensor.shape) != 3 or tensor.shape[2] not in (1, 3) or min(tensor.shape[:2]) < 1:
+        raise ValueError(f'expected an (H, W, 1|3) tensor, got shape {tuple(tensor.shape)}')
+    height, width, channels = (int(s) for s in tensor.shape)
+    level0 = pad_rgb(tensor.array) if channels == 3 else tensor.array
+    if levels:
+        buffer, sizes, offsets = build_levels(level0, width, height, 4 if channels == 3 else 1)
+    else:
+        buffer, sizes, offsets = level0, [(width, height)], [0]
+    off = mi.UInt32(offsets)
+    dr.eval(buffer, off)
+    return Pyramid(buffer, off, width, height, channels, sizes)
+
+
+# ------------------------------------------------------------------------------------ lookups
 class MIPMap:
-    """A :class:`Pyramid` seen through a wrap mode: fetches and point/bilinear/trilinear."""
+    """A :class:`Pyramid` seen through a wrap mode: fetches and point/bilinear/trilinear. Made
+    per lookup (it holds no state of its own), so a lookup always reads the pyramid it is
+    given."""
 
     def __init__(self, pyramid: Pyramid, wrap: str):
         self.pyr = pyramid
@@ -264,7 +209,7 @@ class MIPMap:
     # -------------------------------------------------------------------- structure
     @property
     def has_pyramid(self) -> bool:
-        return self.pyr.built
+        return self.pyr.complete
 
     @property
     def sizes(self):
@@ -272,7 +217,7 @@ class MIPMap:
 
     @property
     def n_levels(self) -> int:
-        """Levels a width can select (pbrt's L), whether or not the pyramid is built."""
+        """Levels a width can select (pbrt's L), whether or not the pyramid holds them."""
         return 1 + int(math.floor(math.log2(max(self.width, self.height))))
 
     def value_type(self):
@@ -337,18 +282,6 @@ class MIPMap:
         """Continuous level for a filter width in texture units (pbrt: L-1 + log2 width)."""
         return log2_positive(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
 
-    def split_levels(self, level, fn, active):
-        """``fn(lvl, mask)`` for a per-lane ``level`` that may be 0: once, reading every level
-        from the levels' buffer — or, where that buffer's level 0 would miss gradients enabled
-        on the tensor since, once for the lanes at level 0 (static: the tensor) and once for the
-        others, so no tap ever gathers from two buffers."""
-        if not self.has_pyramid or len(self.sizes) == 1:
-            return fn(0, active)
-        if self.pyr.levels_hold_base:
-            return fn(level, active)
-        is0 = level == 0
-        return dr.select(is0, fn(0, active & is0), fn(level, active & ~is0))
-
     def only_where(self, mask, fn, *inputs):
         """``fn(mask)`` where ``mask`` holds and 0 elsewhere, as a symbolic conditional: a
         packet of lanes none of which needs it skips it (a branch), where a masked computation
@@ -356,7 +289,7 @@ class MIPMap:
         (30% faster). Only without gradients (on the texels or on ``inputs``): forward-mode AD
         through a conditional inside an integrator's loop fails in Dr.Jit, so lookups being
         differentiated keep the masked form."""
-        if dr.grad_enabled(self.pyr.levels.buffer, *inputs):
+        if dr.grad_enabled(self.pyr.buffer, *inputs):
             return fn(mask)
         return dr.if_stmt(args=(mask,), cond=mask, true_fn=fn,
                           false_fn=lambda m: dr.zeros(self.value_type()), label='pbrt_level')
@@ -388,7 +321,7 @@ class MIPMap:
         level = self.level_of(width)
         top = self._top_lanes(level, last)
         ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last))
-        value = self.split_levels(ilevel, lambda lvl, m: lookup(lvl, st, m), active & ~top)
+        value = lookup(ilevel, st, active & ~top)
         return self._with_top(top, active, value)
 
     def trilinear(self, st, width, active):
@@ -401,52 +334,45 @@ class MIPMap:
         frac = dr.clip(level - l0, 0, 1)
         il0 = mi.UInt32(l0)
         run = active & ~top
-        v0 = self.split_levels(il0, lambda lvl, m: self.bilinear(lvl, st, m), run & (frac < 1))
+        v0 = self.bilinear(il0, st, run & (frac < 1))
         v1 = self.only_where(run & (frac > 0), lambda m: self.bilinear(il0 + 1, st, m), st)
         blend = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
         return self._with_top(top, active, blend)
 
 
 class LevelView:
-    """Where the texels of one level live: the base tensor or its RGBA copy (static level 0), or
-    the levels' buffer (a per-lane UInt32 level; see :meth:`MIPMap.split_levels` for when its
-    level 0 may be used). Size and offset are computed once and reused by every tap, and each
-    tap is a single gather from one buffer."""
+    """One level of the pyramid's buffer: static level 0 (Python constants for its size) or a
+    per-lane UInt32 level. Size and offset are computed once and reused by every tap, and each
+    tap is a single gather from the one buffer."""
 
     def __init__(self, mip: MIPMap, level):
         self.mip = mip
         pyr = mip.pyr
-        self.base = isinstance(level, int) or len(pyr.sizes) == 1
-        self.packed = self.base and pyr.packed_base       # decided once per trace
-        if self.base:
+        self.static = isinstance(level, int) or len(pyr.sizes) == 1
+        if self.static:
             if isinstance(level, int) and level != 0:
                 raise ValueError('only level 0 can be static')
             self.size = (float(mip.width), float(mip.height))
             self.inv_size = (1.0 / mip.width, 1.0 / mip.height)
+            self.off, self.iw = 0, mip.width
         else:
             # level sizes halve with floor, never below 1: max(1, floor(n / 2^level)), the
             # power of two built from its exponent bits (exact); only the offset is looked up
             inv_scale = dr.reinterpret_array(mi.Float, (127 - mi.UInt32(level)) << 23)
             self.size = (dr.maximum(dr.floor(mip.width * inv_scale), 1),
                          dr.maximum(dr.floor(mip.height * inv_scale), 1))
-            self.off = dr.gather(mi.UInt32, pyr.levels.off, level)
+            self.off = dr.gather(mi.UInt32, pyr.off, level)
             self.iw = mi.UInt32(self.size[0])
             self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
 
     def gather(self, iy, ix, active):
         """Texel at wrapped integer (ix, iy)."""
-        T = self.mip.value_type()
         pyr = self.mip.pyr
-        iy, ix = mi.UInt32(iy), mi.UInt32(ix)
-        if self.base:
-            index = dr.fma(iy, self.mip.width, ix)
-            if self.packed:
-                return _rgb(dr.gather(mi.Array4f, pyr.base4, index, active))
-            return dr.gather(T, pyr.base, index, active)
-        index = dr.fma(iy, self.iw, ix + self.off)
+        ix = mi.UInt32(ix) if self.static else mi.UInt32(ix) + self.off
+        index = dr.fma(mi.UInt32(iy), self.iw, ix)
         if pyr.stride == 4:
-            return _rgb(dr.gather(mi.Array4f, pyr.levels.buffer, index, active))
-        return dr.gather(T, pyr.levels.buffer, index, active)
+            return _rgb(dr.gather(mi.Array4f, pyr.buffer, index, active))
+        return dr.gather(mi.Float, pyr.buffer, index, active)
 
 
 def _rgb(v4):

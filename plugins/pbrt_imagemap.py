@@ -66,7 +66,7 @@ from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
                                     parse_encoding)
 from mitsuba_pbrt_tex.mapping import mapping_2d
-from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid
+from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, Pyramid, build_pyramid
 from mitsuba_pbrt_tex.params import PluginError
 from mitsuba_pbrt_tex.texture import PbrtTexture
 from mitsuba_pbrt_tex.wrap import WRAP_MODES
@@ -95,7 +95,7 @@ class Plugin(PbrtTexture):
         self._load(p, encoding)
         self.describe('source', self.source)
         self.describe('resolution', f'{self.pyramid.width}x{self.pyramid.height}x'
-                                    f'{self.pyramid.channels}')
+                                    f'{self.channels}')
         for name in ('filter_name', 'wrap', 'max_anisotropy', 'sort_lookups', 'invert',
                      'width_convention'):
             self.describe(name.replace('_name', ''), getattr(self, name))
@@ -123,37 +123,27 @@ class Plugin(PbrtTexture):
             raise PluginError(f'{self.NAME}: give exactly one of the parameters "filename", '
                               f'"bitmap", "data" (got {", ".join(given) if given else "none"})')
         source = given[0]
+        self._shared = None          # the cached file this texture's texels still are, if any
         if source == 'data':
             if encoding is not None and encoding.kind != 'linear':
                 raise p.error('encoding', 'applies to 8/16-bit image files only; "data" tensors '
                                           'are linear')
-            self.data = self._checked_tensor(p.raw('data'), p)
-            self.pyramid, self.source = Pyramid(self.data).prepare(), 'data tensor'
+            self.data, self.source = self._checked_tensor(p.raw('data'), p), 'data tensor'
+        elif source == 'filename':
+            name = p.string('filename', None)
+            path = str(mi.file_resolver().resolve(name))
+            self._shared = self._call(lambda: load_image(path, encoding), 'filename')
+            # our own tensor object over the shared texels, so in-place updates stay ours
+            self.data, self.source = mi.TensorXf(self._shared.tensor), name
+            self._warn_nonfinite(self._shared.nonfinite)
         else:
-            if source == 'filename':
-                name = p.string('filename', None)
-                path = str(mi.file_resolver().resolve(name))
-                shared = self._call(lambda: load_image(path, encoding), 'filename')
-                self.source = name
-            else:
-                bmp = p.raw('bitmap')
-                if not isinstance(bmp, mi.Bitmap):
-                    raise p.error('bitmap', f'expected an mi.Bitmap, got {type(bmp).__name__}')
-                img = self._call(lambda: decode_bitmap(bmp, encoding, 'the bitmap'), 'bitmap')
-                shared = None
-                self.data = mi.TensorXf(img.texels)
-                self.pyramid, self.source = Pyramid(self.data).prepare(), 'bitmap object'
-                self._warn_nonfinite(img.nonfinite)
-            if shared is not None:
-                # Our own tensor object (so in-place parameter updates stay ours) over the shared
-                # texels, and the shared levels once they are built.
-                self.data = mi.TensorXf(shared.pyramid.tensor)
-                self._shared = shared.pyramid
-                self.pyramid = Pyramid(self.data)
-                self.pyramid.share_from(self._shared, levels=False)
-                self._warn_nonfinite(shared.nonfinite)
-        if self.filter_name in ('trilinear', 'ewa'):
-            self._build_levels()
+            bmp = p.raw('bitmap')
+            if not isinstance(bmp, mi.Bitmap):
+                raise p.error('bitmap', f'expected an mi.Bitmap, got {type(bmp).__name__}')
+            img = self._call(lambda: decode_bitmap(bmp, encoding, 'the bitmap'), 'bitmap')
+            self.data, self.source = mi.TensorXf(img.texels), 'bitmap object'
+            self._warn_nonfinite(img.nonfinite)
+        self.pyramid = self._build(levels=self.filter_name in ('trilinear', 'ewa'))
 
     def _call(self, fn, param):
         try:
@@ -180,38 +170,59 @@ class Plugin(PbrtTexture):
             mi.Log(mi.LogLevel.Warn, f'{self.NAME}: {count} non-finite texel value(s) '
                                      f'replaced by 0')
 
-    def _build_levels(self):
-        if self._sharing():
-            self.pyramid.share_from(self._shared, levels=True)
-        else:
-            self.pyramid.build()
-
-    def _sharing(self) -> bool:
-        """Does this texture still hold the shared (cached) texels of its file?"""
-        shared = getattr(self, '_shared', None)
-        return shared is not None and shared.tensor.array.index == self.data.array.index
+    def _build(self, levels: bool) -> Pyramid:
+        """The pyramid of ``self.data`` (every level, or level 0 alone): the file's shared one
+        while the texels are still the file's, else built from the tensor — inside the AD graph
+        even during a render's primal pass (which suspends gradients), so gradients enabled on
+        the tensor reach every level."""
+        if self._shared is not None:
+            return self._shared.pyramid(levels)
+        with dr.resume_grad():
+            return build_pyramid(self.data, levels)
 
     def _make_filter(self):
-        self.mip = MIPMap(self.pyramid, self.wrap)
-        self.filter = TextureFilter(self.mip, self.filter_name, self.max_anisotropy,
+        self.filter = TextureFilter(self.filter_name, self.wrap, self.max_anisotropy,
                                     WIDTH_CONVENTIONS[self.width_convention], self.sort_lookups)
+
+    def _lookup_pyramid(self) -> Pyramid:
+        """The pyramid lookups read, brought up to date with the tensor first.
+
+        Gradients enabled on ``data`` after the pyramid was built, without ``params.update()``,
+        would not reach the texels (the pyramid is a copy): outside a symbolic loop or call the
+        pyramid is rebuilt here; inside one (a render's kernel) it cannot be, and that is an
+        error naming the fix (Mitsuba's ``bitmap`` gives no gradient at all then). A texture
+        that reads level 0 alone of a shared file switches to the file's complete pyramid once
+        another texture has built it (same level 0), so the level-0 copy can be freed."""
+        pyr = self.pyramid
+        if dr.grad_enabled(self.data) and not dr.grad_enabled(pyr.buffer):
+            if dr.flag(dr.JitFlag.SymbolicScope):
+                raise PluginError(
+                    f'{self.NAME}: parameter "data": gradients were enabled on it after the '
+                    f'texture was built, so they cannot reach its MIP levels; call '
+                    f'params.update() after dr.enable_grad(params[...]) (Mitsuba\'s optimizers '
+                    f'do this in params.update(opt))')
+            self._shared = None
+            self.pyramid = pyr = self._build(pyr.complete)
+        elif self._shared is not None and not pyr.complete:
+            self.pyramid = pyr = self._shared.built(levels=True) or pyr
+        return pyr
 
     # ------------------------------------------------------------------ evaluation
     def _value(self, si, active):
         tc = self.mapping.map(self.context(si))
-        v = self.filter(tc, active) * self.scale
+        v = self.filter(self._lookup_pyramid(), tc, active) * self.scale
         if self.invert:
             v = dr.maximum(0, 1 - v)
         return v
 
     def evaluate(self, si, kind, active):
         v = self._value(si, active)
-        return kind.from_rgb(v) if self.pyramid.channels == 3 else kind.from_float(v)
+        return kind.from_rgb(v) if self.channels == 3 else kind.from_float(v)
 
     def eval_1_grad(self, si, active=True):
         active = mi.Bool(active)
         tc = self.mapping.map(self.context(si))
-        f, dfds, dfdt = self.filter.gradient(tc, active)
+        f, dfds, dfdt = self.filter.gradient(self._lookup_pyramid(), tc, active)
         jac = self.mapping.map(TextureEvalContext.uv_jacobian(si))
         dfdu = (dfds * jac.dsdx + dfdt * jac.dtdx) * self.scale
         dfdv = (dfds * jac.dsdy + dfdt * jac.dtdy) * self.scale
@@ -221,23 +232,26 @@ class Plugin(PbrtTexture):
         return mi.Vector2f(dfdu, dfdv)
 
     # ------------------------------------------------------------------ Mitsuba interface
+    @property
+    def channels(self) -> int:
+        return int(self.data.shape[2])
+
     def mean(self):
-        base = self.pyramid.base
-        if self.pyramid.channels == 3:
-            texels = dr.gather(mi.Color3f, base, dr.arange(mi.UInt32, dr.width(base) // 3))
-            values = mi.luminance(texels) * self.scale
-        else:
-            values = base * self.scale
+        texels = self.data.array
+        if self.channels == 3:
+            texels = mi.luminance(dr.gather(mi.Color3f, texels,
+                                            dr.arange(mi.UInt32, dr.width(texels) // 3)))
+        values = texels * self.scale
         if self.invert:
             values = dr.maximum(0, 1 - values)
         return dr.mean(values)
 
     def resolution(self):
-        return mi.ScalarVector2i(self.pyramid.width, self.pyramid.height)
+        return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
 
     def prepare_differentials(self):
-        if not self.pyramid.built:
-            self._build_levels()
+        if not self.pyramid.complete:
+            self.pyramid = self._build(levels=True)
         return True
 
     def traverse(self, cb):
@@ -251,10 +265,6 @@ class Plugin(PbrtTexture):
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
-        had_levels = self.pyramid.built
         self._shared = None
-        self.pyramid = Pyramid(self.data).prepare()
-        if had_levels:
-            self.pyramid.build()
+        self.pyramid = self._build(self.pyramid.complete)
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
-        self._make_filter()

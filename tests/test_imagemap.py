@@ -13,7 +13,7 @@ import pytest
 import reference_mipmap as ref
 from conftest import A, make_si
 from mitsuba_pbrt_tex.image import image_cache
-from mitsuba_pbrt_tex.mipmap import Pyramid, level_sizes
+from mitsuba_pbrt_tex.mipmap import build_pyramid, level_sizes
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 LUM = ref.LUM
@@ -122,11 +122,11 @@ def test_rgba_keeps_rgb_and_png_encodings():
 @pytest.mark.parametrize('shape', [(1, 1), (1, 9), (9, 1), (37, 53), (64, 64), (48, 80)])
 def test_pyramid_levels_match_reference(shape, channels, rng):
     img = rng.random(shape + (channels,))
-    pyr = Pyramid(mi.TensorXf(img.astype(np.float32))).build()
+    pyr = build_pyramid(mi.TensorXf(img.astype(np.float32)))
     want = ref.pyramid(img)
     assert pyr.sizes == [(lv.shape[1], lv.shape[0]) for lv in want] == level_sizes(shape[1], shape[0])
-    buffer = np.array(pyr.levels.buffer)                      # all levels, level 0 first
-    offsets = np.array(pyr.levels.off)
+    buffer = np.array(pyr.buffer)                            # all levels, level 0 first
+    offsets = np.array(pyr.off)
     stride = pyr.stride                                      # RGB levels are stored RGBA-padded
     for k, lv in enumerate(want):
         h, w = lv.shape[:2]
@@ -136,7 +136,7 @@ def test_pyramid_levels_match_reference(shape, channels, rng):
         assert np.all(got[..., channels:] == 0)
     # the pyramid (padded level 0 + coarser levels) is ≤ 4/3 of its padded base level
     padded_base = img.shape[0] * img.shape[1] * stride * 4
-    assert pyr.nbytes() - img.size * 4 <= 1.34 * padded_base + 64
+    assert pyr.nbytes() <= 1.34 * padded_base + 64
 
 
 # ------------------------------------------------------------------------------------ filters
@@ -416,8 +416,7 @@ def test_file_pyramid_shared_and_built_once_across_threads():
     for t in threads:
         t.join()
     assert len(image_cache) == 1
-    levels = {id(t.pyramid.levels) for t in texs}
-    assert len(levels) == 1                                    # one pyramid, shared
+    assert len({id(t.pyramid) for t in texs}) == 1            # one pyramid, shared
     # a parameter update on one texture does not affect the others
     p = mi.traverse(texs[0])
     p['data'] = mi.TensorXf(np.zeros((13, 17, 3), np.float32))
@@ -440,8 +439,8 @@ def test_scene_with_identical_textures_loads_in_parallel():
 def test_file_textures_without_pyramid_drop_their_copy_when_another_builds_it():
     """A bilinear and a trilinear texture of the same file share one RGBA copy of level 0: once
     the trilinear one builds the pyramid, whose buffer starts with level 0, the bilinear one
-    reads that buffer too (no second copy is kept alive) and still matches Mitsuba's ``bitmap``
-    (≤ 1e-6, as in the parity tests) before and after."""
+    reads that buffer too at its next lookup (no second copy is kept alive) and still matches
+    Mitsuba's ``bitmap`` (≤ 1e-6, as in the parity tests) before and after."""
     image_cache.clear()
     path = os.path.join(DATA, 'rgb_13x17.exr')
     bitmap = mi.load_dict({'type': 'bitmap', 'filename': path})
@@ -450,9 +449,9 @@ def test_file_textures_without_pyramid_drop_their_copy_when_another_builds_it():
     want = A(bitmap.eval(si))
     np.testing.assert_allclose(A(bil.eval(si)), want, atol=1e-6)
     tri = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'trilinear'})
-    assert not bil.pyramid.built and tri.pyramid.built
-    assert bil.pyramid.base4.index == tri.pyramid.levels.buffer.index
+    assert not bil.pyramid.complete and tri.pyramid.complete
     np.testing.assert_allclose(A(bil.eval(si)), want, atol=1e-6)
+    assert bil.pyramid.buffer.index == tri.pyramid.buffer.index
 
 # ------------------------------------------------------------------------------------ gradients
 @pytest.mark.parametrize('filt', ['point', 'bilinear', 'trilinear', 'ewa'])

@@ -73,10 +73,10 @@ def lanczos_pow2_pyramid(img):
 def area_box_pyramid(img):
     """Ours, via the package (Dr.Jit), read back as numpy levels."""
     import mitsuba as mi
-    from ..mipmap import Pyramid
-    pyr = Pyramid(mi.TensorXf(img.astype(np.float32))).build()
-    upper = np.array(pyr.levels.buffer, dtype=np.float64)
-    off = np.array(pyr.levels.off)
+    from ..mipmap import build_pyramid
+    pyr = build_pyramid(mi.TensorXf(img.astype(np.float32)))
+    upper = np.array(pyr.buffer, dtype=np.float64)
+    off = np.array(pyr.off)
     c, stride = img.shape[2], pyr.stride
     levels = [img.astype(np.float64)]
     for k, (w, h) in enumerate(pyr.sizes[1:], start=1):
