@@ -159,3 +159,69 @@ class CameraFootprint:
             good = ok & (den != 0) & dr.all(dr.isfinite(world))
             out.append(dr.select(good, scale * world, 0.0))
         return out[0], out[1]
+
+
+class RayDiff:
+    """The two offset rays of a ray differential (origins ``o_x, o_y``, directions ``d_x, d_y``)
+    and, per lane, whether it holds: one value that a path tracer carries from bounce to bounce
+    (a Dr.Jit struct, so it can be loop state)."""
+
+    DRJIT_STRUCT = {'o_x': object, 'd_x': object, 'o_y': object, 'd_y': object, 'valid': object}
+
+    def __init__(self, o_x=None, d_x=None, o_y=None, d_y=None, valid=None):
+        self.o_x = mi.Point3f(0) if o_x is None else o_x
+        self.d_x = mi.Vector3f(0) if d_x is None else d_x
+        self.o_y = mi.Point3f(0) if o_y is None else o_y
+        self.d_y = mi.Vector3f(0) if d_y is None else d_y
+        self.valid = mi.Bool(False) if valid is None else valid
+
+    @staticmethod
+    def of_camera_ray(ray, scale) -> 'RayDiff':
+        """The sensor's one-pixel differential of ``ray``, scaled by ``scale`` (detached)."""
+        o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
+        return RayDiff(dr.fma(mi.Point3f(dr.detach(ray.o_x)) - o, scale, o),
+                       dr.fma(mi.Vector3f(dr.detach(ray.d_x)) - d, scale, d),
+                       dr.fma(mi.Point3f(dr.detach(ray.o_y)) - o, scale, o),
+                       dr.fma(mi.Vector3f(dr.detach(ray.d_y)) - d, scale, d), mi.Bool(True))
+
+    def footprint(self, p, n, active):
+        """(dp/dx, dp/dy, ok) on the tangent plane at p (see :func:`tangent_plane_offsets`)."""
+        return tangent_plane_offsets(p, n, self.o_x, self.d_x, self.o_y, self.d_y,
+                                     active & self.valid)
+
+    def after_specular(self, si, bs, wo_world, origin, dpdx, dpdy) -> 'RayDiff':
+        """The differential of the ray leaving ``si`` in ``wo_world`` through the sampled lobe
+        ``bs`` (pbrt-v4 ``SpawnRay``): propagated through ideal specular reflection or
+        transmission where this one holds, otherwise none (the next hit then uses the camera
+        approximation, as in pbrt-v4).
+
+        The offset rays start at ``origin`` — Mitsuba's *spawned* origin of the main ray — plus
+        the footprint offsets: spawned origins are offset along the normal by ~1e-4·|p|, and
+        starting the offset rays from the un-offset hit (as pbrt does) would add that
+        displacement to the next footprint (a 0.2% error in the mirror test)."""
+        reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
+        transmit = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaTransmission)
+        si_d = dr.detach(si)
+        wo = si_d.to_world(si_d.wi)                      # pbrt's wo: towards the origin
+        wi = dr.detach(wo_world)
+        n = mi.Vector3f(si_d.sh_frame.n)
+        duv_dx, duv_dy = si_d.duv_dx, si_d.duv_dy
+        dndx = si_d.dn_du * duv_dx.x + si_d.dn_dv * duv_dx.y
+        dndy = si_d.dn_du * duv_dy.x + si_d.dn_dv * duv_dy.y
+        dwodx, dwody = -self.d_x - wo, -self.d_y - wo
+        flip = dr.dot(wo, n) < 0
+        n_t = dr.select(flip, -n, n)
+        dndx_t, dndy_t = dr.select(flip, -dndx, dndx), dr.select(flip, -dndy, dndy)
+        eta = dr.detach(bs.eta)
+        rx = dr.select(reflect, reflect_differential(wo, wi, n, dndx, dwodx),
+                       refract_differential(wo, wi, n_t, dndx_t, dwodx, eta))
+        ry = dr.select(reflect, reflect_differential(wo, wi, n, dndy, dwody),
+                       refract_differential(wo, wi, n_t, dndy_t, dwody, eta))
+        base = mi.Point3f(dr.detach(origin))
+        o_x, o_y = base + dpdx, base + dpdy
+        squash = ((dr.squared_norm(rx) > SQUASH_LIMIT) | (dr.squared_norm(ry) > SQUASH_LIMIT)
+                  | (dr.squared_norm(o_x) > SQUASH_LIMIT) | (dr.squared_norm(o_y) > SQUASH_LIMIT)
+                  | ~dr.all(dr.isfinite(rx)) | ~dr.all(dr.isfinite(ry)))
+        keep = (reflect | transmit) & si.is_valid() & self.valid & ~squash
+        return RayDiff(dr.select(keep, o_x, self.o_x), dr.select(keep, rx, self.d_x),
+                       dr.select(keep, o_y, self.o_y), dr.select(keep, ry, self.d_y), keep)

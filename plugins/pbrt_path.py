@@ -42,16 +42,16 @@ import mitsuba as mi
 
 from mitsuba_pbrt_tex import raydiff, variants
 from mitsuba_pbrt_tex.params import Params
+from mitsuba_pbrt_tex.raydiff import RayDiff
 from mitsuba_pbrt_tex.texture import uses_differentials
 
+
+def _prb_helpers():
+    """Mitsuba's own AD-integrator helpers (imported when a supported variant is set)."""
+    from mitsuba.ad.integrators.common import mis_weight, solid_angle_to_area_jacobian
+    return mis_weight, solid_angle_to_area_jacobian
+
 AOV_CHANNELS = {'duv_dx': ('duv_dx.u', 'duv_dx.v'), 'duv_dy': ('duv_dy.u', 'duv_dy.v')}
-
-
-def _mis_weight(pdf_a, pdf_b):
-    """Power heuristic (β = 2), 0 where both pdfs vanish (as Mitsuba's ``mis_weight``)."""
-    a2 = pdf_a * pdf_a
-    w = a2 / (a2 + pdf_b * pdf_b)
-    return dr.select(dr.isfinite(w), w, 0)
 
 
 class Plugin:
@@ -130,29 +130,22 @@ class Plugin:
     # ------------------------------------------------------------------ the path tracer
     @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
-        """See ``ADIntegrator.sample()``; stages below follow Mitsuba's ``prb``, plus the
-        differentials (marked "differentials")."""
+        """See ``ADIntegrator.sample()``. The stages are those of Mitsuba 3.9's ``prb`` (same
+        helpers, same order of random numbers), plus the stages marked "differentials"."""
+        mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
         want = self.needs_differentials(scene)
 
-        # ---- differentials: the camera ray's offsets, scaled for the sample count --------------
+        # ---- differentials: the camera ray's, scaled for the sample count --------------------
         sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
         scale = dr.opaque(mi.Float, raydiff.spp_scale(spp, self.spp_mode))
-        has_diff_in = bool(getattr(ray, 'has_differentials', False)) and want
-        if dr.hint(has_diff_in, mode='scalar'):
-            o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
-            o_x = dr.fma(mi.Point3f(dr.detach(ray.o_x)) - o, scale, o)
-            o_y = dr.fma(mi.Point3f(dr.detach(ray.o_y)) - o, scale, o)
-            d_x = dr.fma(mi.Vector3f(dr.detach(ray.d_x)) - d, scale, d)
-            d_y = dr.fma(mi.Vector3f(dr.detach(ray.d_y)) - d, scale, d)
-            has_diff = mi.Bool(True)
+        if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
+            diff = RayDiff.of_camera_ray(ray, scale)
         else:
-            o_x, o_y = mi.Point3f(0), mi.Point3f(0)
-            d_x, d_y = mi.Vector3f(0), mi.Vector3f(0)
-            has_diff = mi.Bool(False)
+            diff = RayDiff()
         camera = self.footprint(sensor) if want else None
         first_duv_dx, first_duv_dy = mi.Vector2f(0), mi.Vector2f(0)
 
@@ -196,8 +189,7 @@ class Plugin:
             if dr.hint(want, mode='scalar'):
                 valid = si.is_valid()
                 p_hit, n_hit = dr.detach(si.p), dr.detach(si.n)
-                dpdx, dpdy, ok = raydiff.tangent_plane_offsets(p_hit, n_hit, o_x, d_x, o_y, d_y,
-                                                               valid & has_diff)
+                dpdx, dpdy, ok = diff.footprint(p_hit, n_hit, valid)
                 ax, ay = camera.dp_dxy(p_hit, n_hit, scale, valid & ~ok)
                 dpdx = dr.select(ok, dpdx, ax)
                 dpdy = dr.select(ok, dpdy, ay)
@@ -215,8 +207,8 @@ class Plugin:
             if dr.hint(self.hide_emitters, mode='scalar'):
                 active_next &= ~((depth == 0) & ~si.is_valid())
             ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
-            mis = _mis_weight(bsdf_pdf_prev,
-                              scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
+            mis = mis_weight(bsdf_pdf_prev,
+                             scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
             with dr.resume_grad(when=not primal):
                 Le = β * mis * ds.emitter.eval(si, active_next)
 
@@ -227,12 +219,32 @@ class Plugin:
             active_em &= (ds.pdf != 0.0)
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode='scalar'):
+                    flags = ds.emitter.flags()
+                    is_surface = mi.has_flag(flags, mi.EmitterFlags.Surface)
+                    is_infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
+                    textured_area_em = active_em & is_surface & mi.has_flag(
+                        flags, mi.EmitterFlags.SpatiallyVarying)
+                    # re-attach the sample to a (moving) textured area emitter, as prb does
+                    ray_em = si.spawn_ray_to(ds.p)
+                    ray_em.o = dr.fma(ray_em.d, ray_em.maxt, ray_em.o)
+                    ray_em.maxt = dr.largest(ray_em.maxt)
+                    si_em = scene.ray_intersect(ray_em, textured_area_em)
+                    ds_diff = mi.DirectionSample3f(scene, si_em, si)
+                    ds_diff = dr.select(textured_area_em, ds_diff,
+                                        dr.zeros(mi.DirectionSample3f))
+                    ds_diff.d = dr.select(textured_area_em, ds_diff.d,
+                                          dr.normalize(ds.p - si.p))
+                    ds_diff.d = dr.select(~is_infinite, ds_diff.d, ds.d)
+                    ds = dr.replace_grad(ds, ds_diff)
+                    J = solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
+                                                     active_em & is_surface)
                     em_val = scene.eval_emitter_direction(si, ds, active_em)
                     inv_pdf = dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0)
                     em_weight = dr.replace_grad(em_weight, em_val * dr.detach(inv_pdf))
+                    em_weight *= dr.relative_grad(J)
                 wo = si.to_local(ds.d)
                 bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
-                mis_em = dr.select(ds.delta, 1, _mis_weight(ds.pdf, bsdf_pdf_em))
+                mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
                 Lr_dir = β * mis_em * bsdf_value_em * em_weight
 
             # ---- BSDF sampling (detached) --------------------------------------------------
@@ -244,9 +256,7 @@ class Plugin:
 
             # ---- differentials: propagate through ideal specular lobes ---------------------
             if dr.hint(want, mode='scalar'):
-                o_x, d_x, o_y, d_y, has_diff = self._propagate(
-                    si, bsdf_sample, ray, ray_next, wo_world, dpdx, dpdy, o_x, d_x, o_y, d_y,
-                    has_diff)
+                diff = diff.after_specular(si, bsdf_sample, wo_world, ray_next.o, dpdx, dpdy)
 
             η *= bsdf_sample.eta
             β *= bsdf_weight
@@ -272,17 +282,29 @@ class Plugin:
                                                               ray_flags=mi.RayFlags.Minimal,
                                                               active=active_next)
                 with dr.resume_grad():
+                    J = solid_angle_to_area_jacobian(si.p, si_next.p, si_next.n,
+                                                     active_next & si_next.is_valid())
                     wo_diff = dr.normalize(si_next.p - si.p)
                     wo_w = dr.replace_grad(ray_next.d,
                                            dr.select(si_next.is_valid(), wo_diff, ray_next.d))
                     bsdf_val = bsdf.eval(bsdf_ctx, si, si.to_local(wo_w), active_next)
-                    Lr_ind = L * dr.relative_grad(bsdf_val)
+                    Lr_ind = L * dr.relative_grad(bsdf_val) * dr.relative_grad(J)
                     Lo = Le + Lr_dir + Lr_ind
+                    if dr.hint(dr.flag(dr.JitFlag.VCallRecord) and not dr.grad_enabled(Lo),
+                               mode='scalar'):
+                        raise Exception(
+                            'pbrt_path: the contribution computed by the differential phase is '
+                            'not attached to the AD graph (did you call dr.enable_grad(..) on a '
+                            'scene parameter, and params.update() after it?)')
                     if dr.hint(mode == dr.ADMode.Backward, mode='scalar'):
-                        dr.backward_from(δL * Lo,
-                                         flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+                        dr.backward_from(δL * Lo)
                     else:
-                        δL += dr.forward_to(Lo, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+                        δL += dr.forward_to(Lo)
+
+            # ---- reorder threads for the next iteration (as prb; CUDA only) ----------------
+            reorder_hint = dr.reinterpret_array(mi.UInt32, pi_next.shape)
+            reorder_hint = (reorder_hint << 1) | dr.select(active_next, 1, 0)
+            depth = dr.reorder_threads(reorder_hint, 16, depth)
 
             depth[si.is_valid()] += 1
             active = active_next
@@ -296,45 +318,3 @@ class Plugin:
             v = first_duv_dx if a == 'duv_dx' else first_duv_dy
             aovs += [v.x, v.y]
         return (L if primal else δL, depth != 0, aovs, L)
-
-    def _propagate(self, si, bs, ray, ray_next, wo_world, dpdx, dpdy, o_x, d_x, o_y, d_y,
-                   has_diff):
-        """New ray differential after the sampled lobe (pbrt-v4 ``SpawnRay``), or none.
-
-        The offset rays start at the *spawned* origin of the main ray plus the footprint offsets:
-        Mitsuba offsets spawned origins along the normal by ~1e-4·|p|, and starting the offset
-        rays from the un-offset hit (as pbrt does) would add that displacement to the next
-        footprint (a 0.2% error in the mirror test)."""
-        reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
-        transmit = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaTransmission)
-        specular = (reflect | transmit) & si.is_valid()
-        si_d = dr.detach(si)
-        wo = -mi.Vector3f(dr.detach(ray.d))                 # pbrt's wo: towards the origin
-        wi = dr.detach(wo_world)
-        n = mi.Vector3f(si_d.sh_frame.n)
-        duv_dx, duv_dy = si_d.duv_dx, si_d.duv_dy
-        dndx = si_d.dn_du * duv_dx.x + si_d.dn_dv * duv_dx.y
-        dndy = si_d.dn_du * duv_dy.x + si_d.dn_dv * duv_dy.y
-        dwodx = -d_x - wo
-        dwody = -d_y - wo
-        flip = dr.dot(wo, n) < 0
-        n_t = dr.select(flip, -n, n)
-        dndx_t, dndy_t = dr.select(flip, -dndx, dndx), dr.select(flip, -dndy, dndy)
-        eta = dr.detach(bs.eta)
-        rx = dr.select(reflect, raydiff.reflect_differential(wo, wi, n, dndx, dwodx),
-                       raydiff.refract_differential(wo, wi, n_t, dndx_t, dwodx, eta))
-        ry = dr.select(reflect, raydiff.reflect_differential(wo, wi, n, dndy, dwody),
-                       raydiff.refract_differential(wo, wi, n_t, dndy_t, dwody, eta))
-        base = mi.Point3f(dr.detach(ray_next.o))
-        new_o_x = base + dpdx
-        new_o_y = base + dpdy
-        squash = ((dr.squared_norm(rx) > raydiff.SQUASH_LIMIT)
-                  | (dr.squared_norm(ry) > raydiff.SQUASH_LIMIT)
-                  | (dr.squared_norm(new_o_x) > raydiff.SQUASH_LIMIT)
-                  | (dr.squared_norm(new_o_y) > raydiff.SQUASH_LIMIT)
-                  | ~dr.all(dr.isfinite(rx)) | ~dr.all(dr.isfinite(ry)))
-        # Without an incoming differential there is none to propagate (pbrt-v4): the next hit
-        # uses the camera approximation.
-        keep = specular & has_diff & ~squash
-        return (dr.select(keep, new_o_x, o_x), dr.select(keep, rx, d_x),
-                dr.select(keep, new_o_y, o_y), dr.select(keep, ry, d_y), keep)
