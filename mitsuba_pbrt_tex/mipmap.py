@@ -82,27 +82,15 @@ def level_sizes(width: int, height: int) -> list[tuple[int, int]]:
     return sizes
 
 
-def box_taps(n: int, n2: int, ntaps: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Area-average weights from ``n`` texels down to ``n2``: (indices, weights), each (ntaps, n2).
-
-    Output texel i covers ``[i·n/n2, (i+1)·n/n2)`` of the input; weight = overlap / (n/n2).
-    """
-    idx = np.zeros((ntaps, n2), dtype=np.uint32)
-    wts = np.zeros((ntaps, n2), dtype=np.float64)
-    r = n / n2
-    for i in range(n2):
-        a, b = i * r, (i + 1) * r
-        for k, j in enumerate(range(int(math.floor(a)), min(n, int(math.ceil(b))))):
-            idx[k, i] = j
-            wts[k, i] = (min(b, j + 1) - max(a, j)) / r
-    return idx, wts.astype(np.float32)
-
-
 def _downsample(src: mi.Float, w: int, h: int, c: int, axis: int, n2: int) -> mi.Float:
-    """Area-average ``src`` (flat (h, w, c)) along x (axis 0) or y (axis 1) to ``n2`` texels."""
+    """Area-average ``src`` (flat (h, w, c)) along x (axis 0) or y (axis 1) to ``n2`` texels.
+
+    Output texel i covers ``[a, b) = [i·n/n2, (i+1)·n/n2)`` of the input's ``n`` texels; input
+    texel j gets the weight ``|[a, b) ∩ [j, j+1)| / (n/n2)``. The taps and weights are computed
+    here, on the device (so a frozen function can record a rebuild), relative to ``floor(a)``
+    with integer arithmetic, so they stay exact to float32 rounding at any image size."""
     n = w if axis == 0 else h
-    idx, wts = box_taps(n, n2)
-    used = int(np.max(np.count_nonzero(wts, axis=0)))
+    taps = n // n2 if n % n2 == 0 else min(n, math.ceil(n / n2) + 1)
     ow, oh = (n2, h) if axis == 0 else (w, n2)
     o = dr.arange(mi.UInt32, ow * oh * c)
     ch = o % c
@@ -110,12 +98,18 @@ def _downsample(src: mi.Float, w: int, h: int, c: int, axis: int, n2: int) -> mi
     oy = texel // ow
     ox = texel - oy * ow
     i = ox if axis == 0 else oy
+    first = (i * n) // n2                           # floor(a)
+    rem = i * n - first * n2
+    a_rel = mi.Float(rem) / n2                      # a - floor(a), in [0, 1)
+    b_rel = mi.Float(rem + n) / n2                  # b - floor(a)
     acc = mi.Float(0)
-    for k in range(used):
-        tap = dr.gather(mi.UInt32, mi.UInt32(idx[k]), i)
-        wt = dr.gather(mi.Float, mi.Float(wts[k]), i)
+    for k in range(taps):
+        overlap = dr.minimum(b_rel - k, 1) - dr.maximum(a_rel - k, 0)
+        wt = dr.maximum(overlap, 0) * (n2 / n)
+        tap = first + k
         sx, sy = (tap, oy) if axis == 0 else (ox, tap)
-        acc = dr.fma(wt, dr.gather(mi.Float, src, (sy * w + sx) * c + ch), acc)
+        acc = dr.fma(wt, dr.gather(mi.Float, src, (sy * w + sx) * c + ch, (wt > 0) & (tap < n)),
+                     acc)
     return acc
 
 
@@ -189,7 +183,11 @@ def build_pyramid(tensor: mi.TensorXf, levels: bool = True) -> Pyramid:
         buffer, sizes, offsets = build_levels(level0, width, height, 4 if channels == 3 else 1)
     else:
         buffer, sizes, offsets = level0, [(width, height)], [0]
-    off = mi.UInt32(offsets)
+    # from literals, not a host array: a frozen function can record it
+    index = dr.arange(mi.UInt32, len(offsets))
+    off = mi.UInt32(0)
+    for level, offset in enumerate(offsets[1:], start=1):
+        off = dr.select(index == level, offset, off)
     dr.eval(buffer, off)
     return Pyramid(buffer, off, width, height, channels, sizes)
 

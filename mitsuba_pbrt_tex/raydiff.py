@@ -125,17 +125,14 @@ class CameraFootprint:
         self.min_dir_y = self._shortest(dyf)
 
     @staticmethod
-    def _shortest(v) -> mi.ScalarVector3f:
-        import numpy as np
-        a = np.array(v, dtype=np.float64)
-        if a.ndim == 2 and a.shape[0] == 3 and a.shape[1] != 3:
-            a = a.T
-        a = a.reshape(-1, 3)
-        a = a[np.all(np.isfinite(a), axis=1)]
-        if len(a) == 0:
-            return mi.ScalarVector3f(0, 0, 0)
-        k = int(np.argmin(np.linalg.norm(a, axis=1)))
-        return mi.ScalarVector3f(*(float(x) for x in a[k]))
+    def _shortest(v: mi.Vector3f) -> mi.Vector3f:
+        """The shortest finite vector of ``v`` (the first one on ties; 0 if none is finite),
+        found on the device — no read-back, so it can be recorded in a frozen function."""
+        length2 = dr.select(dr.all(dr.isfinite(v)), dr.squared_norm(v), dr.inf)
+        shortest = dr.min(length2)
+        index = dr.select(length2 == shortest, dr.arange(mi.UInt32, dr.width(v)), 0xFFFFFFFF)
+        found = dr.gather(mi.Vector3f, v, dr.min(index))
+        return dr.select(dr.isfinite(shortest), found, 0.0)
 
     def dp_dxy(self, p, n, scale: float, active):
         """Approximate ``dp/dx, dp/dy`` at world point p with geometric normal n."""

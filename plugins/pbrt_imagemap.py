@@ -266,5 +266,8 @@ class Plugin(PbrtTexture):
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
         self._shared = None
-        self.pyramid = self._build(self.pyramid.complete)
+        # Texels being differentiated get every level now: forward mode propagates the input's
+        # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
+        # lazily during the render (under pbrt_path) would miss it.
+        self.pyramid = self._build(self.pyramid.complete or dr.grad_enabled(self.data))
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')

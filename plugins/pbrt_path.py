@@ -141,7 +141,9 @@ class Plugin:
         sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
-        scale = dr.opaque(mi.Float, raydiff.spp_scale(spp, self.spp_mode))
+        # (but a frozen function cannot record the host → device copy; spp is part of its key)
+        scale = raydiff.spp_scale(spp, self.spp_mode)
+        scale = mi.Float(scale) if dr.flag(dr.JitFlag.FreezingScope) else dr.opaque(mi.Float, scale)
         if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
             diff = RayDiff.of_camera_ray(ray, scale)
         else:
