@@ -35,6 +35,23 @@ tracer.
 
 Samples per pixel: the footprint uses the spp of the ``mi.render`` call, or the total set with
 ``set_total_spp(n)`` (``python -m mitsuba_pbrt_tex render`` does this when it renders in passes).
+
+Relation to Mitsuba 3.9's ``prb``: :meth:`Plugin.sample` follows ``prb.sample`` stage by stage
+and imports Mitsuba's helpers (``mis_weight``, ``solid_angle_to_area_jacobian`` from
+``mitsuba.ad.integrators.common``) rather than copying them, so with ``texture_differentials``
+false, or no texture that reads differentials, it renders and differentiates exactly as ``prb``
+(same random numbers; ``tests/test_gradient_workflows.py`` compares gradients). It differs only
+where differentials need it:
+
+* before ``si.bsdf()``, each hit gets ``si.duv_dx``/``si.duv_dy`` (``prb`` leaves them 0);
+* after BSDF sampling, the ray differential (:class:`~mitsuba_pbrt_tex.raydiff.RayDiff`) is
+  propagated through ideal specular lobes or dropped;
+* the camera ray's differential is scaled by ``spp_scale`` (``prb`` discards it), the sensor is
+  remembered in ``sample_rays`` for the camera approximation, and the scene's textures are asked
+  (``prepare_differentials``) at each render;
+* optional AOVs with the first hit's uv partials;
+* under ``dr.freeze`` the spp scale is a literal (the host → device copy of ``dr.opaque`` cannot
+  be recorded; spp is part of the frozen function's key).
 """
 
 import drjit as dr
