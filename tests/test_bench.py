@@ -73,9 +73,13 @@ def test_pyramid_benchmark_runs():
 
 def test_inverse_demo_quick(tmp_path):
     from mitsuba_pbrt_tex.demo import inverse
-    history, summary = inverse.run(str(tmp_path), iterations=2, res=16, spp=2, target_spp=8,
-                                   log=lambda s: None)
-    assert set(history) == {m[0] for m in inverse.METHODS}
+    history, summary, frozen = inverse.run(str(tmp_path), iterations=4, res=16, spp=2,
+                                           target_spp=8, log=lambda s: None, freeze=True)
+    assert set(history) == set(frozen) == {m[0] for m in inverse.METHODS}
+    for label, rows in history.items():       # frozen steps replay the same computation
+        for a, b in zip(rows, frozen[label]):
+            assert b['loss'] == pytest.approx(a['loss'], rel=1e-5)
+            assert b['texture_rmse'] == pytest.approx(a['texture_rmse'], rel=1e-5)
     for rows in history.values():
         assert all(np.isfinite(r['loss']) and np.isfinite(r['texture_rmse']) for r in rows)
         assert rows[-1]['texture_rmse'] < rows[0]['texture_rmse'] + 1e-3

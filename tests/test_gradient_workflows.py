@@ -179,20 +179,41 @@ def test_sampling_parameter_gradient_matches_prb_and_finite_differences(source, 
 
 # ------------------------------------------------------------------------------------ dr.freeze
 @pytest.mark.parametrize('filt', ['point', 'bilinear', 'trilinear', 'ewa'])
-def test_frozen_render_records_and_replays(filt):
-    """A function rendering with pbrt_path can be frozen with dr.freeze (the pyramid is a Dr.Jit
-    struct; its offsets and the camera footprint are computed on the device, with no read-back),
-    and gives exactly the unfrozen images (identical kernels: 1e-6). Before, recording failed.
-    Not yet achieved (README, "Known limitations"): Dr.Jit re-records it at each call, and
-    frozen *differentiation* is not verified."""
-    scene = textured_scene('pbrt_path', filt, np.random.default_rng(3), size=16)
-    params = mi.traverse(scene)
+def test_frozen_optimisation_steps_equal_unfrozen_ones(filt):
+    """Mitsuba's frozen-optimisation pattern (its own test_freeze.py): dr.freeze a function
+    that renders with pbrt_path and back-propagates; params.update(opt) and opt.step() run
+    outside it, so the pyramid is rebuilt from the new texels before each call. Six Adam steps,
+    frozen and not: the losses and texel gradients are equal (the replay runs the recorded
+    kernels on the new inputs: float32 rounding, 1e-5), and calls were replayed, not all
+    recorded (Dr.Jit records such a step up to 3 times here, as for bitmap + prb)."""
+    def run(frozen, steps=6):
+        scene = textured_scene('pbrt_path', filt, np.random.default_rng(3), size=16)
 
-    def render(scene, params, seed):
-        return mi.render(scene, params, spp=4, seed=seed)
+        def optimize(scene, seed):
+            params = mi.traverse(scene)
+            params.keep(DATA_KEY)
+            image = mi.render(scene, params, spp=4, seed=seed)
+            loss = dr.mean(dr.square(image - 0.25), axis=None)
+            dr.backward(loss)
+            return loss
 
-    frozen = dr.freeze(render)
-    for seed in range(3):
-        got = np.array(frozen(scene, params, mi.UInt32(seed)))
-        want = np.array(mi.render(scene, params, spp=4, seed=seed))
-        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+        fn = dr.freeze(optimize) if frozen else optimize
+        params = mi.traverse(scene)
+        params.keep(DATA_KEY)
+        opt = mi.ad.Adam(lr=0.05)
+        opt[DATA_KEY] = params[DATA_KEY]
+        history = []
+        for step in range(steps):
+            params.update(opt)
+            loss = fn(scene, mi.UInt32(step))
+            history.append((scalar(loss), np.array(dr.grad(opt[DATA_KEY]))))
+            opt.step()
+        return history, (fn.n_recordings if frozen else None)
+
+    plain, _ = run(False)
+    frozen, recordings = run(True)
+    assert recordings < len(frozen)
+    for (loss_p, grad_p), (loss_f, grad_f) in zip(plain, frozen):
+        assert np.abs(grad_p).sum() > 0
+        assert loss_f == pytest.approx(loss_p, rel=1e-5)
+        np.testing.assert_allclose(grad_f, grad_p, rtol=1e-5, atol=1e-7)

@@ -11,6 +11,11 @@ to the targets by gradient descent on the squared image error, with three lookup
   rebuilt inside the AD graph after every step, so far-away pixels send their gradient to every
   texel of their footprint.
 
+With ``--freeze`` each method is also run with its per-view step (render, loss,
+``dr.backward``) frozen by ``dr.freeze`` — parameter updates and ``opt.step()`` outside, as in
+Mitsuba's own frozen-optimisation tests — and the summary gives its time per step beside the
+unfrozen one.
+
 Written to ``--out``: ``inverse.png`` (loss and texture RMSE per iteration), ``textures.png``
 (true, initial and recovered textures, and a target view), ``inverse.csv`` and a summary with
 time per iteration and peak memory.
@@ -76,7 +81,7 @@ METHODS = (('bitmap + prb', 'bitmap', 'prb'), ('trilinear + pbrt_path', 'triline
 
 
 def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.03,
-        variant='llvm_ad_rgb', log=print):
+        variant='llvm_ad_rgb', log=print, freeze=False):
     import drjit as dr
     import mitsuba as mi
 
@@ -94,8 +99,18 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
         scene = mi.load_dict(scene_dict(texture_dict('bilinear', truth), 'path', view, res))
         targets.append(mi.TensorXf(mi.render(scene, spp=target_spp, seed=99)))
 
-    history, finals = {}, {}
-    for label, kind, integrator in METHODS:
+    def step(scene, target, seed):
+        """One view's share of an Adam step: render, loss, back-propagation (what dr.freeze
+        records with --freeze; parameter updates and opt.step() stay outside, as in Mitsuba's
+        frozen-optimisation tests)."""
+        params = mi.traverse(scene)
+        params.keep(key)
+        img = mi.render(scene, params, spp=spp, seed=seed)
+        loss = dr.mean(dr.square(img - target), axis=None)
+        dr.backward(loss)
+        return loss
+
+    def fit(label, kind, integrator, frozen):
         init = np.full_like(truth, 0.5)
         scenes = [mi.load_dict(scene_dict(texture_dict(kind, init), integrator, v, res))
                   for v in VIEWS]
@@ -104,14 +119,13 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
         opt[key] = params[0][key]
         for p in params:
             p.update(opt)
+        fn = dr.freeze(step) if frozen else step
         rows = []
         t_start = time.perf_counter()
         for it in range(iterations):
             loss_total = 0.0
-            for k, (scene, p, target) in enumerate(zip(scenes, params, targets)):
-                img = mi.render(scene, p, spp=spp, seed=it * len(VIEWS) + k)
-                loss = dr.mean(dr.square(img - target), axis=None)
-                dr.backward(loss)
+            for k, (scene, target) in enumerate(zip(scenes, targets)):
+                loss = fn(scene, target, mi.UInt32(it * len(VIEWS) + k))
                 loss_total += float(np.array(loss).ravel()[0])
             opt.step()
             opt[key] = dr.clip(opt[key], 0.0, 1.0)
@@ -124,8 +138,13 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
             if it % 10 == 0 or it == iterations - 1:
                 log(f'{label:24s} it {it:3d}  image loss {rows[-1]["loss"]:.5f}  '
                     f'texture RMSE {tex_rmse:.4f}  {rows[-1]["seconds"]:6.1f} s')
-        history[label] = rows
-        finals[label] = np.array(params[0][key])
+        return rows, np.array(params[0][key])
+
+    history, finals, frozen_rows = {}, {}, {}
+    for label, kind, integrator in METHODS:
+        history[label], finals[label] = fit(label, kind, integrator, False)
+        if freeze:
+            frozen_rows[label], _ = fit(label + ' (frozen)', kind, integrator, True)
 
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     with open(os.path.join(out_dir, 'inverse.csv'), 'w', newline='') as f:
@@ -138,8 +157,16 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
                f'peak resident memory {peak_mib:.0f} MiB']
     for label, rows in history.items():
         per_it = rows[-1]['seconds'] / len(rows)
-        summary.append(f'- {label}: final texture RMSE {rows[-1]["texture_rmse"]:.4f}, image loss '
-                       f'{rows[-1]["loss"]:.5f}, {per_it * 1e3:.0f} ms per step')
+        line = (f'- {label}: final texture RMSE {rows[-1]["texture_rmse"]:.4f}, image loss '
+                f'{rows[-1]["loss"]:.5f}, {per_it * 1e3:.0f} ms per step')
+        if label in frozen_rows:
+            fr = frozen_rows[label]
+            # the first steps record the frozen function; the rest replay it
+            settled = [b['seconds'] - a['seconds'] for a, b in zip(fr[2:], fr[3:])] or [0.0]
+            line += (f'; frozen (dr.freeze): {fr[-1]["seconds"] / len(fr) * 1e3:.0f} ms per step '
+                     f'including recording, {1e3 * sum(settled) / len(settled):.0f} ms per '
+                     f'replayed step, final texture RMSE {fr[-1]["texture_rmse"]:.4f}')
+        summary.append(line)
     with open(os.path.join(out_dir, 'summary.md'), 'w') as f:
         f.write('\n'.join(summary) + '\n')
     plots(history, truth, finals, np.array(targets[0]), out_dir)
@@ -147,9 +174,9 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
         log(line)
     # matplotlib's and Mitsuba's reference cycles can keep the last scenes (and their AD graph)
     # alive until the next collection; release them now for whatever the caller does next
-    del scenes, params, opt, targets
+    del targets
     gc.collect()
-    return history, summary
+    return history, summary, frozen_rows
 
 
 def plots(history, truth, finals, target_view, out_dir):
@@ -198,10 +225,14 @@ def main(argv=None) -> int:
     ap.add_argument('--res', type=int, default=64)
     ap.add_argument('--spp', type=int, default=4)
     ap.add_argument('--lr', type=float, default=0.03)
+    ap.add_argument('--freeze', action='store_true',
+                    help='also run every method with its render + backward frozen by dr.freeze, '
+                         'and report its time per step beside the unfrozen one')
     ap.add_argument('--quick', action='store_true', help='3 iterations at 16×16 (smoke test)')
     args = ap.parse_args(argv)
     if args.quick:
-        run(args.out, iterations=3, res=16, spp=2, target_spp=16, lr=args.lr)
+        run(args.out, iterations=3, res=16, spp=2, target_spp=16, lr=args.lr,
+            freeze=args.freeze)
     else:
-        run(args.out, args.iterations, args.res, args.spp, lr=args.lr)
+        run(args.out, args.iterations, args.res, args.spp, lr=args.lr, freeze=args.freeze)
     return 0
