@@ -68,7 +68,7 @@ import numpy as np
 
 from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
-FILTERS = ('point', 'bilinear', 'trilinear', 'ewa')
+FILTERS = ('point', 'bilinear', 'trilinear', 'ewa', 'box')
 WIDTH_CONVENTIONS = {'v3': 1.0, 'v4': 2.0}
 
 
