@@ -184,18 +184,23 @@ class _Row:
         self.start = base + row * mi.UInt32(K)
         self.N = N
         self.valid = valid
-        if periodic:
-            self.T = self.q(mi.UInt32(N), _C1)
-            self.S = self.q(mi.UInt32(N), _C2)
-            self.U = self.q(mi.UInt32(N), _C3)
 
-    def q(self, i, quantity):
+    def totals(self, need_t, need_su):
+        """The row's totals (periodic modes), read only by the lanes that need them: ``T`` where
+        a point lies outside the first period, ``S``, ``U`` where a closed form spans periods."""
+        n = mi.UInt32(self.N)
+        self.T = self.q(n, _C1, need_t | need_su)
+        self.S = self.q(n, _C2, need_su)
+        self.U = self.q(n, _C3, need_su)
+
+    def q(self, i, quantity, mask=True):
         return dr.gather(self.T64, self.tables.buffer, (self.start + i) * NQ + quantity,
-                         self.valid)
+                         self.valid & mask)
 
-    def cell(self, p):
+    def cell(self, p, full):
         """The knot cell holding table position ``p`` (a point strictly inside the part of the
-        path being integrated): (knot data, knot index i as float, period index k)."""
+        path being integrated): (knot data, knot index i as float, period index k). The second
+        and third antiderivatives are read only where ``full``."""
         N = self.N
         if self.periodic:
             k = dr.floor(p / N)
@@ -204,7 +209,8 @@ class _Row:
             k = mi.Float64(0)
             i = dr.clip(dr.floor(p), 0, N - 1)
         ii = mi.UInt32(i)
-        data = tuple(self.q(ii, quantity) for quantity in range(NQ))
+        data = tuple(self.q(ii, quantity, True if quantity <= _C1 else full)
+                     for quantity in range(NQ))
         return data, i, k
 
     def antiderivatives(self, cell, x, k_ref, order: int):
@@ -349,8 +355,10 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
         for dj in (0, 1):
             row, valid = _wrapped_row(j + dj, mi.Float(R), wrap)
             rw = _Row(tables, base, K, N, row, on & valid, periodic, T64)
-            cell_a, cell_b = rw.cell(pos_a), rw.cell(pos_b)
+            cell_a, cell_b = rw.cell(pos_a, long_piece), rw.cell(pos_b, long_piece)
             ka = cell_a[2]
+            if periodic:
+                rw.totals((ka != 0) | (cell_b[2] != 0), long_piece & (cell_b[2] != ka))
             q_glob = rw.antiderivatives(cell_a, x0, mi.Float64(0), 1)[0]
             # long pieces: closed forms from the antiderivatives at both ends (frame of x0's period)
             qa, q2a, q3a = rw.antiderivatives(cell_a, x0, ka, 3)
