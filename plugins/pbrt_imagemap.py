@@ -49,7 +49,10 @@ magnification and no anisotropy limit; cost grows with the footprint's *shorter*
 to :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels, beyond which a coarser level is averaged
 exactly (see :mod:`mitsuba_pbrt_tex.box`). It needs per-row and per-column prefix tables of every
 level, built once with the pyramid (float64: about 2 × 5 × 8 bytes per texel and channel, e.g.
-~140 MB for a 1024² RGB image). ``eval_1_grad`` is that of ``trilinear``.
+~140 MB for a 1024² RGB image). ``eval_1_grad`` is that of ``trilinear``. ``box`` opts in to
+``pbrt_path``'s ``footprint="pixel"``: camera hits then filter their pixel's footprint (every
+sample of a pixel sees its average; right for albedo and emission, not for roughness or bump
+maps, whose shading is not linear in the texture — use another filter there).
 
 Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
@@ -69,6 +72,7 @@ reconstruction at the selected level(s).
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_pbrt_tex import pixel
 from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
@@ -238,6 +242,14 @@ class Plugin(PbrtTexture):
         return pyr
 
     # ------------------------------------------------------------------ evaluation
+    def context(self, si):
+        """``box`` opts in to pixel footprints (``pbrt_path`` ``footprint="pixel"``: camera hits
+        filter their pixel's footprint, see :mod:`mitsuba_pbrt_tex.pixel`); the other filters
+        stay sample-centred."""
+        if self.filter_name == 'box':
+            return pixel.context(si)
+        return TextureEvalContext.from_si(si)
+
     def _value(self, si, active):
         tc = self.mapping.map(self.context(si))
         pyr = self._lookup_pyramid()

@@ -14,6 +14,7 @@ hit before its BSDF is evaluated or sampled.
 | hide_emitters | boolean | false | hide directly visible emitters | no |
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
+| footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` film filter) | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (uv partials at the first hit; 2 channels each) | no |
 
 Where the differentials come from:
@@ -25,6 +26,16 @@ Where the differentials come from:
   corrected, see :mod:`mitsuba_pbrt_tex.raydiff`) and dropped if an offset exceeds 1e16;
 * everywhere else (after diffuse/glossy bounces, or when a propagated differential is lost):
   pbrt-v4's camera approximation — the footprint a camera ray would have at that point.
+
+``footprint="pixel"``: with a box film filter each sample counts only in its own pixel, so a
+texture that opts in (``pbrt_imagemap`` ``filter="box"``) filters the footprint of the *pixel*
+at camera hits — centred on the pixel, with the perspective-corrected partials — and every
+sample of a pixel sees the same value: a 1-spp image of such a texture is already its pixel
+average (:mod:`mitsuba_pbrt_tex.pixel` explains the geometry and how the texture learns the
+pixel without any per-lane data passed to it). This is exact for textures that enter the shading
+linearly (albedo, emission); a roughness, bump or opacity texture would converge to the shading
+of the pixel-averaged texture, so only opting-in filters are pixel-centred, the other textures
+and later bounces keep the sample's footprint (``si.duv_dx``/``si.duv_dy`` are unchanged).
 
 The partials are least-squares solved in the tangent frame, made finite and clamped to ±1e8, and
 written to ``si.duv_dx``/``si.duv_dy``, so any texture — ours, Mitsuba's, or a Python texture of
@@ -50,6 +61,9 @@ where differentials need it:
   remembered in ``sample_rays`` for the camera approximation, and the scene's textures are asked
   (``prepare_differentials``) at each render;
 * optional AOVs with the first hit's uv partials;
+* ``footprint="pixel"``: ``sample()`` publishes the sensor to opting-in textures while it is
+  traced (or run, in wavefront mode) — see :mod:`mitsuba_pbrt_tex.pixel`; the light transport,
+  the random numbers and ``si`` are those of ``footprint="sample"``;
 * under ``dr.freeze`` the spp scale is a literal (the host → device copy of ``dr.opaque`` cannot
   be recorded; spp is part of the frozen function's key).
 """
@@ -57,8 +71,8 @@ where differentials need it:
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex import raydiff, variants
-from mitsuba_pbrt_tex.params import Params
+from mitsuba_pbrt_tex import pixel, raydiff, variants
+from mitsuba_pbrt_tex.params import Params, PluginError
 from mitsuba_pbrt_tex.raydiff import RayDiff
 from mitsuba_pbrt_tex.texture import uses_differentials
 
@@ -68,6 +82,9 @@ def _prb_helpers():
     from mitsuba.ad.integrators.common import mis_weight, solid_angle_to_area_jacobian
     return mis_weight, solid_angle_to_area_jacobian
 
+FOOTPRINTS = ('sample', 'pixel')
+PIXEL_SENSORS = ('PerspectiveCamera',)
+PIXEL_FILTERS = ('BoxFilter',)
 AOV_CHANNELS = {'duv_dx': ('duv_dx.u', 'duv_dx.v'), 'duv_dy': ('duv_dy.u', 'duv_dy.v')}
 
 
@@ -92,6 +109,7 @@ class Plugin:
         self.hide_emitters = p.bool('hide_emitters', False)
         self.texture_differentials = p.bool('texture_differentials', True)
         self.spp_mode = self._spp_mode(p)
+        self.footprint_mode = p.enum('footprint', 'sample', FOOTPRINTS)
         text = p.string('aovs', '') or ''
         self.aov_list = [a.strip() for a in text.split(',') if a.strip()]
         for a in self.aov_list:
@@ -115,7 +133,8 @@ class Plugin:
     def to_string(self):
         return (f'{self.NAME}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, '
                 f'hide_emitters={self.hide_emitters}, texture_differentials='
-                f'{self.texture_differentials}, spp_scale={self.spp_mode}, aovs={self.aov_list}]')
+                f'{self.texture_differentials}, spp_scale={self.spp_mode}, '
+                f'footprint={self.footprint_mode}, aovs={self.aov_list}]')
 
     def set_total_spp(self, spp):
         """Use ``spp`` (not the spp of each ``mi.render`` call) for the footprint scale."""
@@ -144,11 +163,38 @@ class Plugin:
         self._sensor = sensor
         return self._pbrt_base.sample_rays(self, scene, sensor, sampler)
 
+    def pixel_sensor(self, sensor):
+        """The sensor to publish for ``footprint="pixel"`` (None for ``sample``); an error names
+        what does not fit."""
+        if self.footprint_mode != 'pixel':
+            return None
+        kind = sensor.class_name()
+        if kind not in PIXEL_SENSORS:
+            raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs a '
+                              f'perspective sensor, got {kind}; accepted values: '
+                              f'{", ".join(FOOTPRINTS)}')
+        rfilter = sensor.film().rfilter().class_name()
+        if rfilter not in PIXEL_FILTERS:
+            raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs the '
+                              f'film filter "box", got {rfilter}; accepted values: '
+                              f'{", ".join(FOOTPRINTS)}')
+        return sensor
+
     # ------------------------------------------------------------------ the path tracer
-    @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
-        """See ``ADIntegrator.sample()``. The stages are those of Mitsuba 3.9's ``prb`` (same
-        helpers, same order of random numbers), plus the stages marked "differentials"."""
+        """See ``ADIntegrator.sample()``: :meth:`trace`, with the sensor published to opting-in
+        textures for ``footprint="pixel"``."""
+        sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
+        published = self.pixel_sensor(sensor) if self.needs_differentials(scene) else None
+        if published is None:
+            return self.trace(mode, scene, sampler, ray, δL, state_in, active, **kwargs)
+        with pixel.published(published):
+            return self.trace(mode, scene, sampler, ray, δL, state_in, active, **kwargs)
+
+    @dr.syntax
+    def trace(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+        """The path tracer. The stages are those of Mitsuba 3.9's ``prb`` (same helpers, same
+        order of random numbers), plus the stages marked "differentials"."""
         mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
