@@ -175,75 +175,72 @@ def build_box_tables(pyramid, wrap: str) -> BoxTables:
 
 
 # ------------------------------------------------------------------------------------ lookups
-class _Row:
-    """One table row as seen by one lane: where its knots start, the period, and (for periodic
-    modes) the row's totals ``T = Q(N)``, ``S = Q2(N)``, ``U = Q3(N)``."""
+def _cell(p, N, periodic):
+    """Knot cell of table position ``p`` (a point strictly inside the part of the path being
+    integrated): (knot index i, period index k), as float64."""
+    if periodic:
+        k = dr.floor(p / N)
+        return dr.clip(dr.floor(p - k * N), 0, N - 1), k
+    return dr.clip(dr.floor(p), 0, N - 1), mi.Float64(0)
 
-    def __init__(self, tables, base, K, N, row, valid, periodic, T64):
-        self.tables, self.T64, self.periodic = tables, T64, periodic
-        self.start = base + row * mi.UInt32(K)
-        self.N = N
-        self.valid = valid
 
-    def totals(self, need_t, need_su):
-        """The row's totals (periodic modes), read only by the lanes that need them: ``T`` where
-        a point lies outside the first period, ``S``, ``U`` where a closed form spans periods."""
-        n = mi.UInt32(self.N)
-        self.T = self.q(n, _C1, need_t | need_su)
-        self.S = self.q(n, _C2, need_su)
-        self.U = self.q(n, _C3, need_su)
-
-    def q(self, i, quantity, mask=True):
-        return dr.gather(self.T64, self.tables.buffer, (self.start + i) * NQ + quantity,
-                         self.valid & mask)
-
-    def cell(self, p, full):
-        """The knot cell holding table position ``p`` (a point strictly inside the part of the
-        path being integrated): (knot data, knot index i as float, period index k). The second
-        and third antiderivatives are read only where ``full``."""
-        N = self.N
-        if self.periodic:
-            k = dr.floor(p / N)
-            i = dr.clip(dr.floor(p - k * N), 0, N - 1)
-        else:
-            k = mi.Float64(0)
-            i = dr.clip(dr.floor(p), 0, N - 1)
-        ii = mi.UInt32(i)
-        data = tuple(self.q(ii, quantity, True if quantity <= _C1 else full)
-                     for quantity in range(NQ))
-        return data, i, k
-
-    def antiderivatives(self, cell, x, k_ref, order: int):
-        """(Q, Q2, Q3) — or (Q,) for ``order`` 1 — at table position ``x`` inside ``cell``, with
-        periods counted from ``k_ref`` (periodic modes: the antiderivatives of the periodic
-        extension, relative to the start of period ``k_ref``)."""
-        (v, dv, c1, c2, c3), i, k = cell
-        if self.periodic:
-            kr = k - k_ref
-            u = x - k * self.N - i
-            q = c1 + u * (v + u * 0.5 * dv) + kr * self.T
-            if order == 1:
-                return (q,)
-            xp = i + u
-            T, S, U, P = self.T, self.S, self.U, self.N
-            q2l = c2 + u * (c1 + u * (v * 0.5 + u * dv / 6))
-            q3l = c3 + u * (c2 + u * (c1 * 0.5 + u * (v / 6 + u * dv / 24)))
-            km1 = kr * (kr - 1)
-            q2 = q2l + kr * T * xp + kr * S + T * P * km1 * 0.5
-            q3 = (q3l + kr * T * xp * xp * 0.5 + kr * S * xp + T * P * km1 * xp * 0.5 + kr * U
-                  + (T * P * P * 0.5 + S * P) * km1 * 0.5 + T * P * P * km1 * (kr - 2) / 6)
-            return q, q2, q3
-        xc = dr.clip(x, 0, self.N)
+def _basis(x, i, k, kr, N, periodic, order):
+    """Coefficients of ``Q``, ``Q2``, ``Q3`` at table position ``x`` inside cell (i, k) as linear
+    combinations of the cell's knot data (v, dv, C1, C2, C3) and, for periodic modes, of the
+    row's totals (T, S, U) with periods counted from ``k - kr``. Each is a tuple of 8 scalars
+    (None for a zero coefficient); the per-channel work is then one fma per coefficient."""
+    if periodic:
+        u = x - k * N - i
+        d = None
+        xp = i + u
+    else:
+        xc = dr.clip(x, 0, N)
         d = x - xc
         u = xc - i
-        q = c1 + u * (v + u * 0.5 * dv)
-        r = v + u * dv
-        if order == 1:
-            return (q + r * d,)
-        q2 = c2 + u * (c1 + u * (v * 0.5 + u * dv / 6))
-        q3 = c3 + u * (c2 + u * (c1 * 0.5 + u * (v / 6 + u * dv / 24)))
-        return (q + r * d, q2 + d * (q + d * 0.5 * r),
-                q3 + d * (q2 + d * (q * 0.5 + d * r / 6)))
+    out = []
+    w = u if d is None else u + d
+    u2 = u * u
+    # Q = C1 + v·u + dv·u²/2 (+ (v + dv·u)·d outside a clamp/black row)
+    if d is None:
+        q = (w, 0.5 * u2, 1.0, None, None)
+    else:
+        q = (w, 0.5 * u2 + u * d, 1.0, None, None)
+    out.append(q)
+    if order >= 2:
+        if d is None:
+            q2 = (0.5 * u2, u2 * u / 6, u, 1.0, None)
+            q3 = (u2 * u / 6, u2 * u2 / 24, 0.5 * u2, u, 1.0)
+        else:
+            d2 = d * d
+            q2 = (0.5 * w * w, u2 * u / 6 + 0.5 * u2 * d + 0.5 * u * d2, w, 1.0, None)
+            q3 = (w * w * w / 6, u2 * u2 / 24 + u2 * u * d / 6 + 0.25 * u2 * d2 + u * d2 * d / 6,
+                  0.5 * w * w, w, 1.0)
+        out += [q2, q3]
+    if not periodic:
+        return [c + (None, None, None) for c in out]
+    km1 = kr * (kr - 1)
+    res = [out[0] + (kr, None, None)]
+    if order >= 2:
+        res.append(out[1] + (kr * xp + N * km1 * 0.5, kr, None))
+        res.append(out[2] + (kr * xp * xp * 0.5 + N * km1 * xp * 0.5 + N * N * km1 * 0.25
+                             + N * N * km1 * (kr - 2) / 6, kr * xp + N * km1 * 0.5, kr))
+    return res
+
+
+def _lin(*terms):
+    """Σ coefficient·vector for coefficient vectors (tuples with None for 0) — a tuple."""
+    n = len(terms[0][1])
+    out = []
+    for q in range(n):
+        acc = None
+        for scale, vec in terms:
+            c = vec[q]
+            if c is None:
+                continue
+            c = c if scale is None else c * scale
+            acc = c if acc is None else acc + c
+        out.append(acc)
+    return tuple(out)
 
 
 def _wrapped_row(j, rows, wrap):
@@ -258,6 +255,16 @@ def _wrapped_row(j, rows, wrap):
 def _finite64(x):
     x = mi.Float64(x)
     return dr.select(dr.isfinite(x), x, 0.0)
+
+
+def _single_cell(mip, level, st, e0, e1, active):
+    """The exact average over a parallelogram inside one cell between four texel centres: the
+    bilinear value at its centre plus the twist term ``f_xy·(e0x·e0y + e1x·e1y)/12``."""
+    texels, wx, wy, _ = mip._corners(level, st, active)
+    f00, f10, f01, f11 = texels
+    centre = (f00 * wx[0] + f10 * wx[1]) * wy[0] + (f01 * wx[0] + f11 * wx[1]) * wy[1]
+    twist = mi.Float((e0[0] * e0[1] + e1[0] * e1[1]) * (1.0 / 12.0))
+    return centre + (f00 - f10 - f01 + f11) * twist
 
 
 def box(mip, tables: BoxTables, st, dst0, dst1, active):
@@ -285,11 +292,16 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     view = mip.view(level)
     w, h = mi.Float64(view.size[0]), mi.Float64(view.size[1])
 
-    # the footprint in the integration frame (X along the table rows, Y across: bands)
     sx = mi.Float64(dr.clip(dr.select(dr.isfinite(st.x), st.x, 0), -COORD_LIMIT, COORD_LIMIT))
     sy = mi.Float64(dr.clip(dr.select(dr.isfinite(st.y), st.y, 0), -COORD_LIMIT, COORD_LIMIT))
     cx, cy = sx * w - 0.5, sy * h - 0.5
     ax, ay, bx, by = s0 * w, t0 * h, s1 * w, t1 * h
+    # a footprint inside one cell (magnification): closed form, no loop
+    hex_, hey = 0.5 * (dr.abs(ax) + dr.abs(bx)), 0.5 * (dr.abs(ay) + dr.abs(by))
+    in_cell = ((dr.floor(cx - hex_) == dr.floor(cx + hex_))
+               & (dr.floor(cy - hey) == dr.floor(cy + hey)) & ~degenerate & active)
+
+    # the footprint in the integration frame (X along the table rows, Y across: bands)
     L = dr.select(columns, h, w)                            # texels along a table row
     R = dr.select(columns, w, h)                            # rows
     cx, cy = dr.select(columns, cy, cx), dr.select(columns, cx, cy)
@@ -307,8 +319,9 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     extent_x = dr.abs(ax) + dr.abs(bx)
     extent_y = dr.abs(ay) + dr.abs(by)
     beyond = (extent_y > 4 * MAX_BANDS) | (extent_x > MAX_EXTENT)
-    run = active & ~degenerate & ~beyond
+    run = active & ~degenerate & ~beyond & ~in_cell
     base = dr.gather(mi.UInt32, tables.base, 2 * level + mi.UInt32(columns), run)
+    Rf = mi.Float(R)
 
     # the four corners, counter-clockwise when ``cross`` > 0
     hx0, hy0, hx1, hy1 = 0.5 * ax, 0.5 * ay, 0.5 * bx, 0.5 * by
@@ -332,12 +345,9 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
             out = dr.select(e == k, edges[k][field], out)
         return out
 
-    def piece(e, j, on):
-        """∫ F dy along edge ``e`` over band ``j`` (lanes ``on``)."""
-        xa_e, ya_e, lo, hi, _, _, slope, sign = (pick(e, f) for f in range(8))
-        y0, y1 = dr.maximum(lo, j), dr.minimum(hi, j + 1)
-        x0 = xa_e + (y0 - ya_e) * slope
-        x1 = xa_e + (y1 - ya_e) * slope
+    def coefficients(x0, x1, y0, y1, j, slope):
+        """Scalar coefficients of ∫Q dy and ∫τ·Q dy over the piece on the knot data of cells
+        a and b and on the row totals (the same for both rows of the band)."""
         dy = y1 - y0
         ta, tb = y0 - j, y1 - j
         delta = x1 - x0
@@ -349,44 +359,86 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
         ym = dr.clip(ym, y0, y1)
         parts = ((y0, ym), (ym, y1))
         mids = [x0 + ((p0 + p1) * 0.5 - y0) * slope for p0, p1 in parts]
-        pos_a = dr.select(long_piece, x0, mids[0])
-        pos_b = dr.select(long_piece, x1, mids[1])
+        ia, ka = _cell(dr.select(long_piece, x0, mids[0]), N, periodic)
+        ib, kb = _cell(dr.select(long_piece, x1, mids[1]), N, periodic)
+        zero = mi.Float64(0)
+        # long pieces: closed forms from Q, Q2, Q3 at both ends, periods counted from ka
+        qa, q2a, q3a = _basis(x0, ia, ka, zero, N, periodic, 3)
+        qb, q2b, q3b = _basis(x1, ib, kb, kb - ka, N, periodic, 3)
+        qg = _basis(x0, ia, ka, ka, N, periodic, 1)[0]          # Q(x0), periods from 0
+        # a-cell coefficients in slots 0-4, b-cell in 5-9, totals 10-12
+        def a(vec):
+            return vec[:5] + (None,) * 5 + vec[5:]
+
+        def b(vec):
+            return (None,) * 5 + vec[:5] + vec[5:]
+
+        inv_b = dr.select(long_piece, dy / dr.select(long_piece, delta, 1.0), 0.0)
+        d2 = _lin((None, b(q2b)), (-1.0, a(q2a)), (-delta, a(qa)))
+        d3 = _lin((None, b(q3b)), (-1.0, a(q3a)), (-delta, a(q2a)), (-0.5 * delta * delta, a(qa)))
+        base_t = (tb * tb - ta * ta) * 0.5
+        i1_long = _lin((dy, a(qg)), (inv_b, d2))
+        it_long = _lin((base_t, a(qg)), (tb * inv_b, d2), (-inv_b * inv_b, d3))
+        # short pieces: Gauss–Legendre on each part (Q with periods from 0)
+        terms1, termst = [], []
+        for (p0, p1), (ic, kc), slot in zip(parts, ((ia, ka), (ib, kb)), (a, b)):
+            half = (p1 - p0) * 0.5
+            mid = (p0 + p1) * 0.5
+            for sgn in (-1.0, 1.0):
+                yg = mid + sgn * _INV_SQRT3 * half
+                qgv = slot(_basis(x0 + (yg - y0) * slope, ic, kc, kc, N, periodic, 1)[0])
+                terms1.append((half, qgv))
+                termst.append((half * (yg - j), qgv))
+        i1_short, it_short = _lin(*terms1), _lin(*termst)
+        i1 = tuple(_sel(long_piece, p, q) for p, q in zip(i1_long, i1_short))
+        it = tuple(_sel(long_piece, p, q) for p, q in zip(it_long, it_short))
+        same = (ia == ib) & (ka == kb)
+        need_t = (ka != 0) | (kb != 0)
+        need_su = long_piece & (kb != ka)
+        return i1, it, ia, ib, same, long_piece, need_t, need_su
+
+    def row_value(coef, row, valid, ia, ib, same, long_piece, need_t, need_su):
+        start = base + row * K
         total = dr.zeros(T64)
-        for dj in (0, 1):
-            row, valid = _wrapped_row(j + dj, mi.Float(R), wrap)
-            rw = _Row(tables, base, K, N, row, on & valid, periodic, T64)
-            cell_a, cell_b = rw.cell(pos_a, long_piece), rw.cell(pos_b, long_piece)
-            ka = cell_a[2]
-            if periodic:
-                rw.totals((ka != 0) | (cell_b[2] != 0), long_piece & (cell_b[2] != ka))
-            q_glob = rw.antiderivatives(cell_a, x0, mi.Float64(0), 1)[0]
-            # long pieces: closed forms from the antiderivatives at both ends (frame of x0's period)
-            qa, q2a, q3a = rw.antiderivatives(cell_a, x0, ka, 3)
-            qb, q2b, q3b = rw.antiderivatives(cell_b, x1, ka, 3)
-            d2 = q2b - q2a - qa * delta
-            d3 = q3b - q3a - q2a * delta - qa * (delta * delta * 0.5)
-            inv_b = dr.select(long_piece, dy / dr.select(long_piece, delta, 1.0), 0.0)
-            int_q_long = d2 * inv_b
-            int_tq_long = tb * d2 * inv_b - d3 * (inv_b * inv_b)
-            # short pieces: Gauss–Legendre on each part
-            int_q_short, int_tq_short = dr.zeros(T64), dr.zeros(T64)
-            for (p0, p1), cell in zip(parts, (cell_a, cell_b)):
-                half = (p1 - p0) * 0.5
-                mid = (p0 + p1) * 0.5
-                for sgn in (-1.0, 1.0):
-                    yg = mid + sgn * _INV_SQRT3 * half
-                    xg = x0 + (yg - y0) * slope
-                    qg = rw.antiderivatives(cell, xg, mi.Float64(0), 1)[0] - q_glob
-                    int_q_short += half * qg
-                    int_tq_short += (half * (yg - j)) * qg
-            int_q = dr.select(long_piece, int_q_long, int_q_short)
-            int_tq = dr.select(long_piece, int_tq_long, int_tq_short)
-            base_tq = q_glob * ((tb * tb - ta * ta) * 0.5)
-            base_q = q_glob * dy
-            if dj == 0:
-                total += (base_q + int_q) - (base_tq + int_tq)
-            else:
-                total += base_tq + int_tq
+
+        def gather(i, q, mask):
+            return dr.gather(T64, tables.buffer, (start + i) * NQ + q, valid & mask)
+
+        ua, ub = mi.UInt32(ia), mi.UInt32(ib)
+        for q in range(NQ):
+            full = True if q <= _C1 else long_piece
+            ca, cb = coef[q], coef[5 + q]
+            if ca is None and cb is None:
+                continue
+            va = gather(ua, q, full)
+            if cb is None:
+                total = dr.fma(va, T64(ca), total)
+                continue
+            vb = dr.select(same, va, gather(ub, q, full & ~same))   # one cell: read once
+            if ca is not None:
+                total = dr.fma(va, T64(ca), total)
+            total = dr.fma(vb, T64(cb), total)
+        if periodic:
+            n = mi.UInt32(N)
+            for slot, q, mask in ((10, _C1, need_t | need_su), (11, _C2, need_su),
+                                  (12, _C3, need_su)):
+                if coef[slot] is not None:
+                    total = dr.fma(gather(n, q, mask), T64(coef[slot]), total)
+        return total
+
+    def piece(e, j, on):
+        """∫ F dy along edge ``e`` over band ``j`` (lanes ``on``)."""
+        xa_e, ya_e, lo, hi, _, _, slope, sign = (pick(e, f) for f in range(8))
+        y0, y1 = dr.maximum(lo, j), dr.minimum(hi, j + 1)
+        x0 = xa_e + (y0 - ya_e) * slope
+        x1 = xa_e + (y1 - ya_e) * slope
+        i1, it, ia, ib, same, long_piece, need_t, need_su = coefficients(x0, x1, y0, y1, j,
+                                                                          slope)
+        w_j = tuple(_sub(p, q) for p, q in zip(i1, it))           # row j: ∫(1-τ)Q
+        r0, v0 = _wrapped_row(j, Rf, wrap)
+        r1, v1 = _wrapped_row(j + 1, Rf, wrap)
+        args = (ia, ib, same, long_piece, need_t, need_su)
+        total = (row_value(w_j, r0, on & v0, *args) + row_value(it, r1, on & v1, *args))
         return dr.select(on, sign * total, 0)
 
     e = mi.UInt32(0)
@@ -411,5 +463,20 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     out_t = mip.value_type()
     result = out_t(value) if c == 3 else mi.Float(value)
     result = dr.select(run, result, 0)
+    result = dr.select(in_cell, _single_cell(mip, level, st, (ax, ay), (bx, by), in_cell),
+                       result)
     result = dr.select(degenerate, mip.bilinear(0, st, active & degenerate), result)
-    return dr.select(beyond & ~degenerate, mip.coarsest(active & beyond & ~degenerate), result)
+    return dr.select(beyond & ~degenerate & ~in_cell,
+                     mip.coarsest(active & beyond & ~degenerate & ~in_cell), result)
+
+
+def _sel(mask, a, b):
+    if a is None and b is None:
+        return None
+    return dr.select(mask, 0.0 if a is None else a, 0.0 if b is None else b)
+
+
+def _sub(a, b):
+    if b is None:
+        return a
+    return -b if a is None else a - b
