@@ -7,7 +7,9 @@ the scene's reference image.
 
 Methods: what Mitsuba users do today — Mitsuba's ``bitmap``/``checkerboard`` (or, where no
 built-in can express the texture, our texture without any footprint) under Mitsuba's ``path``
-with more samples — and every filter/``aamode`` of ours under ``pbrt_path``.
+with more samples — and every filter/``aamode`` of ours under ``pbrt_path``; on the grazing image
+scenes also ``box`` with ``pbrt_path``'s ``footprint="pixel"`` (camera hits filter their
+pixel's footprint).
 
 Reference: the same scene with the textures point-sampled at full resolution (``bitmap`` /
 point-sampled procedurals under ``path``, i.e. no prefiltering at all) and the same box pixel
@@ -73,7 +75,7 @@ def _checker_cases(cells):
     return builtin, ours
 
 
-def _image_methods(image, tiles):
+def _image_methods(image, tiles, pixel=False):
     common = {'texture': 'tex/image_pbrt.xml', 'image': image, 'tiles': tiles}
     builtin = [Method('Mitsuba bitmap + path', {'texture': 'tex/image_bitmap.xml', 'image': image,
                                                'tiles': tiles, 'integrator': 'path'}, False)]
@@ -81,7 +83,11 @@ def _image_methods(image, tiles):
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear', 'trilinearwidth': 'v3'}, True, 'trilinear-width'),
             Method('pbrt_imagemap trilinear v4', {**common, 'filter': 'trilinear', 'trilinearwidth': 'v4'}, True, 'trilinear-width'),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True, 'ewa-anisotropy'),
-            Method('pbrt_imagemap ewa 32', {**common, 'filter': 'ewa', 'maxanisotropy': '32'}, True, 'ewa-anisotropy')]
+            Method('pbrt_imagemap ewa 32', {**common, 'filter': 'ewa', 'maxanisotropy': '32'}, True, 'ewa-anisotropy'),
+            Method('pbrt_imagemap box', {**common, 'filter': 'box'}, True, 'footprint')]
+    if pixel:           # scenes whose pbrt_path takes "footprint" (int/pbrt_path.xml)
+        ours.append(Method('pbrt_imagemap box, footprint pixel',
+                           {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'))
     return builtin, ours
 
 
@@ -93,13 +99,13 @@ def cases() -> list[Case]:
                     'plane to the horizon, procedural checkerboard (cells of 0.2 world units)',
                     {'texture': 'tex/checker_pbrt.xml', 'cells': '2000', 'aamode': 'none',
                      'integrator': 'path'}, b + o, flat))
-    b, o = _image_methods('../textures/checker.png', '125')
+    b, o = _image_methods('../textures/checker.png', '125', pixel=True)
     out.append(Case('grazing-checker-image', 'grazing.xml',
                     'plane to the horizon, checker image (16×16 checks per tile, 125×125 tiles: '
                     'the same 0.2-unit cells)',
                     {'texture': 'tex/image_bitmap.xml', 'tiles': '125', 'integrator': 'path'},
                     b + o, flat))
-    b, o = _image_methods('../textures/zoneplate.png', '100')
+    b, o = _image_methods('../textures/zoneplate.png', '100', pixel=True)
     out.append(Case('grazing-zoneplate', 'grazing.xml',
                     'plane to the horizon, zone-plate image (100×100 tiles)',
                     {'texture': 'tex/image_bitmap.xml', 'image': '../textures/zoneplate.png',
