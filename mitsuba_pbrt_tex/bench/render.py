@@ -88,6 +88,9 @@ def _image_methods(image, tiles, pixel=False):
     if pixel:           # scenes whose pbrt_path takes "footprint" (int/pbrt_path.xml)
         ours.append(Method('pbrt_imagemap box, footprint pixel',
                            {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'))
+        ours.append(Method('pbrt_imagemap box, footprint pixel, silhouette_spp 16',
+                           {**common, 'filter': 'box', 'footprint': 'pixel',
+                            'silhouette_spp': '16'}, True, 'footprint'))
     return builtin, ours
 
 
@@ -298,22 +301,31 @@ def summarize(case: Case, rows) -> list[str]:
         return []
     best = min(ours1, key=lambda r: r['rmse_textured'])
     lines = []
+    noise = mine[0]['reference_noise']
     for bname in sorted({r['method'] for r in mine if not r['ours']}):
         curve = [(r['time_s'], r['rmse_textured']) for r in mine if r['method'] == bname]
-        t_eq = _interp_time(curve, best['rmse_textured'])
-        noise = mine[0]['reference_noise']
-        if t_eq is None:
-            tmax = max(t for t, _ in curve)
-            text = (f'> {tmax / best["time_s"]:.1f}× (never reached within '
-                    f'{max(r["spp"] for r in mine if r["method"] == bname)} spp)')
-        else:
-            text = f'{t_eq / best["time_s"]:.1f}×'
+        max_spp = max(r['spp'] for r in mine if r['method'] == bname)
         lines.append(f'- **{case.name}**: best of ours at 1 spp is *{best["method"]}* '
                      f'(RMSE {best["rmse_textured"]:.4f} on the textured pixels, '
                      f'{best["time_s"] * 1e3:.0f} ms); {bname} reaches that error '
-                     f'at an equal-error speed-up of **{text}** (reference noise RMSE '
-                     f'{noise:.5f}).')
+                     f'at an equal-error speed-up of **{_speedup(curve, best, max_spp)}** '
+                     f'(reference noise RMSE {noise:.5f}).')
+        # the footprint methods one by one: with and without silhouette samples
+        for r in sorted((r for r in ours1 if r['group'] == 'footprint' and r is not best),
+                        key=lambda r: r['method']):
+            lines.append(f'  - *{r["method"]}* (RMSE {r["rmse_textured"]:.4f}, '
+                         f'{r["time_s"] * 1e3:.0f} ms): equal-error speed-up over {bname} '
+                         f'**{_speedup(curve, r, max_spp)}**.')
     return lines
+
+
+def _speedup(curve, row, max_spp) -> str:
+    """Time the (time, error) ``curve`` needs for ``row``'s error, over ``row``'s time."""
+    t_eq = _interp_time(curve, row['rmse_textured'])
+    if t_eq is None:
+        tmax = max(t for t, _ in curve)
+        return f'> {tmax / row["time_s"]:.1f}× (never reached within {max_spp} spp)'
+    return f'{t_eq / row["time_s"]:.1f}×'
 
 
 def compare_groups(rows) -> list[str]:
