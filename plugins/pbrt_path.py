@@ -204,10 +204,31 @@ class Plugin:
             if extra:
                 L, valid, aovs, state = out
                 edge = self.silhouette_pixels(scene, sensor, mi.Bool(active))
-                acc = self.silhouette_samples(scene, sensor, sampler, edge, prep)
+                acc = self.silhouette_paths(scene, sensor, sampler, edge, prep)
                 L = dr.select(edge, (L + acc) * (1.0 / (extra + 1)), L)
                 out = (L, valid, aovs, L)
             return out
+
+    def silhouette_paths(self, scene, sensor, sampler, edge, prep):
+        """Sum of the extra paths of the ``edge`` lanes (0 elsewhere). Outside a symbolic scope
+        (``mi.render`` calls ``sample()`` there) the edge lanes are compacted first — a few
+        percent of the lanes, which a masked loop over all lanes would carry along — and draw
+        from a sampler of their own, seeded from this one."""
+        pixel_pos = mi.Vector2f(self._pixel_pos)
+        if dr.flag(dr.JitFlag.SymbolicScope):
+            return self.silhouette_samples(scene, sensor, sampler, pixel_pos, edge, prep)
+        index = dr.compress(edge)
+        count = dr.width(index)
+        total = dr.zeros(mi.Spectrum, dr.width(edge))
+        if count == 0:
+            return total
+        seed = dr.gather(mi.UInt32, mi.UInt32(sampler.next_1d() * 4294967040.0), 0)
+        sub = sampler.fork()
+        sub.seed(seed, count)
+        acc = self.silhouette_samples(scene, sensor, sub, dr.gather(mi.Vector2f, pixel_pos, index),
+                                      dr.full(mi.Bool, True, count), prep)
+        dr.scatter(total, acc, index)
+        return total
 
     def prepare_trace(self, scene, sampler, sensor):
         """(does any texture use differentials, the camera differential's scale, the camera
@@ -248,10 +269,9 @@ class Plugin:
         return active & edge
 
     @dr.syntax
-    def silhouette_samples(self, scene, sensor, sampler, edge, prep):
+    def silhouette_samples(self, scene, sensor, sampler, pixel_pos, edge, prep):
         """Sum of ``silhouette_spp`` more paths through random points of each ``edge`` lane's
-        pixel (footprints stay the pixel's)."""
-        pixel_pos = mi.Vector2f(self._pixel_pos)
+        pixel ``pixel_pos`` (footprints stay the pixel's)."""
         k = mi.UInt32(0)
         acc = mi.Spectrum(0)
         while dr.hint(edge & (k < self.silhouette_spp), label='pbrt_path (silhouettes)'):
