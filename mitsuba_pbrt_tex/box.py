@@ -22,7 +22,7 @@ How (per lane, at one level, in texel coordinates with texel centres at integers
   cubic polynomial the integrand is on each part.
 * ``Q``, ``Q2``, ``Q3`` at any x come from per-row prefix tables (:func:`build_box_tables`): at
   every knot (texel centre) the texel value, the slope to the next knot and the three
-  antiderivatives, in float64 (the third antiderivative grows as the cube of the row length;
+  antiderivatives, in float64 (RGB as RGBA, so each quantity is one 32-byte packet read) (the third antiderivative grows as the cube of the row length;
   float32 would cancel catastrophically). Outside the row the wrap mode extends them in closed
   form: periodically for ``repeat`` (period w) and ``mirror`` (period 2w, the mirrored copy is in
   the table), by a constant edge value for ``clamp`` and ``black`` (0, after the ramp to the black
@@ -117,7 +117,7 @@ def build_box_tables(pyramid, wrap: str) -> BoxTables:
     pure function of the pyramid's buffer (gradients on it reach the tables)."""
     if wrap not in BOX_WRAPS:
         raise ValueError(f'box filter: unsupported wrap mode "{wrap}"')
-    c = 3 if pyramid.channels == 3 else 1
+    c = pyramid.stride                  # RGB: 4 (A = 0), so a knot quantity is one packet
     stride = pyramid.stride
     level_off, off = [], 0
     for (w, h) in pyramid.sizes:
@@ -274,7 +274,7 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
         raise ValueError('the box filter needs every level of the MIP pyramid')
     wrap = tables.wrap
     c = 3 if mip.channels == 3 else 1
-    T64 = mi.Array3d if c == 3 else mi.Float64
+    T64 = mi.Array4d if c == 3 else mi.Float64          # RGB tables are RGBA: packet gathers
     periodic = wrap in ('repeat', 'mirror')
     active = mi.Bool(active)
     W, H = float(mip.width), float(mip.height)
@@ -461,7 +461,7 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
                               label='pbrt_box')
     value = acc / dr.select(run, cross, 1.0)
     out_t = mip.value_type()
-    result = out_t(value) if c == 3 else mi.Float(value)
+    result = out_t(value.x, value.y, value.z) if c == 3 else mi.Float(value)
     result = dr.select(run, result, 0)
     result = dr.select(in_cell, _single_cell(mip, level, st, (ax, ay), (bx, by), in_cell),
                        result)

@@ -48,8 +48,8 @@ lookup at level 0 (``point``: the nearest texel).
 magnification and no anisotropy limit; cost grows with the footprint's *shorter* extent only, up
 to :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels, beyond which a coarser level is averaged
 exactly (see :mod:`mitsuba_pbrt_tex.box`). It needs per-row and per-column prefix tables of every
-level, built once with the pyramid (float64: about 2 × 5 × 8 bytes per texel and channel, e.g.
-~140 MB for a 1024² RGB image). ``eval_1_grad`` is that of ``trilinear``. ``box`` opts in to
+level, built once with the pyramid (float64, RGB padded to RGBA: 320 bytes per RGB texel, 80 per
+1-channel texel, e.g. ~450 MB for a 1024² RGB image). ``eval_1_grad`` is that of ``trilinear``. ``box`` opts in to
 ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter their pixel's footprint (every
 sample of a pixel sees its average; right for albedo and emission, not for roughness or bump
 maps, whose shading is not linear in the texture — use another filter there).

@@ -65,6 +65,10 @@ where differentials need it:
 * ``footprint="pixel"``: ``sample()`` publishes the sensor to opting-in textures while it is
   traced (or run, in wavefront mode) — see :mod:`mitsuba_pbrt_tex.pixel`; the light transport,
   the random numbers and ``si`` are those of ``footprint="sample"``;
+* ``silhouette_spp > 0`` (with ``footprint="pixel"``, primal renders only): after the sample's
+  path, five camera rays per lane (the pixel's centre and corners) find the pixels that cross a
+  silhouette; those lanes, compacted, trace ``silhouette_spp`` more paths through random points
+  of their pixel (from a sampler forked and seeded from the render's) and return the average;
 * under ``dr.freeze`` the spp scale is a literal (the host → device copy of ``dr.opaque`` cannot
   be recorded; spp is part of the frozen function's key).
 """
