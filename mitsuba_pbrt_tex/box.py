@@ -22,13 +22,16 @@ How (per lane, at one level, in texel coordinates with texel centres at integers
   cubic polynomial the integrand is on each part.
 * ``Q``, ``Q2``, ``Q3`` at any x come from per-row prefix tables (:func:`build_box_tables`): at
   every knot (texel centre) the texel value, the slope to the next knot and the three
-  antiderivatives, in float64 (RGB as RGBA, so each quantity is one 32-byte packet read) (the third antiderivative grows as the cube of the row length;
-  float32 would cancel catastrophically). Outside the row the wrap mode extends them in closed
-  form: periodically for ``repeat`` (period w) and ``mirror`` (period 2w, the mirrored copy is in
-  the table), by a constant edge value for ``clamp`` and ``black`` (0, after the ramp to the black
-  texel outside).
+  antiderivatives, in float64 (the third antiderivative grows as the cube of the row length;
+  float32 would cancel catastrophically), RGB as RGBA so that each quantity is one 32-byte packet
+  read. Outside the row the wrap mode extends them in closed form: periodically for ``repeat``
+  (period w) and ``mirror`` (period 2w, the mirrored copy is in the table), by a constant edge
+  value for ``clamp`` and ``black`` (0, after the ramp to the black texel outside).
 * The tables exist for rows *and* columns; each lane integrates along the axis on which its
   footprint is longer, so the number of bands is the footprint's smaller extent.
+* A footprint inside one cell between four texel centres (magnification) needs no loop: the
+  average of the bilinear polynomial over a parallelogram is its value at the centre plus the
+  twist term ``f_xy·(e0x·e0y + e1x·e1y)/12``.
 
 Cost and level: the loop runs about two pieces per band. The level is the finest at which the
 smaller extent spans at most :data:`MAX_BANDS` texels — level 0 (exact for the image itself)

@@ -1,4 +1,4 @@
-"""pbrt_imagemap — MIP-mapped image texture with point, bilinear, trilinear, EWA and box filtering.
+"""pbrt_imagemap — MIP-mapped image texture: point, bilinear, trilinear, EWA and box filtering.
 
 A drop-in upgrade of Mitsuba's ``bitmap`` (its parameter names are accepted as aliases) with
 pbrt-v4's filters (pbrt section 10.4).
@@ -49,10 +49,11 @@ magnification and no anisotropy limit; cost grows with the footprint's *shorter*
 to :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels, beyond which a coarser level is averaged
 exactly (see :mod:`mitsuba_pbrt_tex.box`). It needs per-row and per-column prefix tables of every
 level, built once with the pyramid (float64, RGB padded to RGBA: 320 bytes per RGB texel, 80 per
-1-channel texel, e.g. ~450 MB for a 1024² RGB image). ``eval_1_grad`` is that of ``trilinear``. ``box`` opts in to
-``pbrt_path``'s ``footprint="pixel"``: camera hits then filter their pixel's footprint (every
-sample of a pixel sees its average; right for albedo and emission, not for roughness or bump
-maps, whose shading is not linear in the texture — use another filter there).
+1-channel texel, e.g. ~450 MB for a 1024² RGB image). ``eval_1_grad`` is that of
+``trilinear``. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
+their pixel's footprint (every sample of a pixel sees its average; right for albedo and
+emission, not for roughness or bump maps, whose shading is not linear in the texture — use
+another filter there).
 
 Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
