@@ -38,8 +38,12 @@ smaller extent spans at most :data:`MAX_BANDS` texels — level 0 (exact for the
 while that holds at level 0, whatever the anisotropy; beyond, the exact average of a coarser
 level's reconstruction (as every MIP filter, blurred by that level's texel size, but only along
 the footprint's shorter axis when the footprint has at most ``MAX_BANDS`` texels across it).
-Footprints that are degenerate (zero area) get the bilinear lookup at level 0; footprints
-longer than :data:`MAX_EXTENT` texels of the chosen level along the integration axis, or wider
+Measured on the bench's grazing planes (pixel footprints, 1 spp, silhouette samples), 16 rather
+than 8 bands: RMSE 0.0056/0.0052 instead of 0.0065/0.0065 for 1.2–1.35× the frame time (about
+the same equal-error cost, a lower error floor); 32: 1.4–1.7× the time for little more.
+
+Footprints that are degenerate (zero area) get the bilinear lookup at level 0; footprints longer
+than :data:`MAX_EXTENT` texels of the chosen level along the integration axis, or wider
 than the whole image many times at the top level, get the coarsest texel (the image mean), as
 pbrt does beyond the top level.
 
@@ -57,7 +61,7 @@ import mitsuba as mi
 from .wrap import COORD_LIMIT, wrap_1d
 
 #: Finest level whose smaller footprint extent is at most this many texels (bands per lookup).
-MAX_BANDS = 8
+MAX_BANDS = 16
 #: Footprints longer than this many texels of their level (along the integration axis) return
 #: the coarsest texel (keeps the float64 antiderivatives well within their precision).
 MAX_EXTENT = 4096.0
