@@ -208,10 +208,18 @@ class Plugin:
             if dr.hint(want, mode='scalar'):
                 valid = si.is_valid()
                 p_hit, n_hit = dr.detach(si.p), dr.detach(si.n)
-                dpdx, dpdy, ok = diff.footprint(p_hit, n_hit, valid)
-                ax, ay = camera.dp_dxy(p_hit, n_hit, scale, valid & ~ok)
-                dpdx = dr.select(ok, dpdx, ax)
-                dpdy = dr.select(ok, dpdy, ay)
+                # each source as a symbolic conditional: a packet of lanes none of which needs
+                # it skips it (camera rays have a differential; diffuse bounces do not)
+                use = valid & diff.valid
+                dpdx, dpdy, ok = dr.if_stmt(
+                    args=(p_hit, n_hit, use), cond=use, true_fn=diff.footprint,
+                    false_fn=lambda p, n, m: (mi.Vector3f(0), mi.Vector3f(0), mi.Bool(False)),
+                    label='pbrt_path: differential')
+                use = valid & ~ok
+                dpdx, dpdy = dr.if_stmt(
+                    args=(p_hit, n_hit, use, dpdx, dpdy), cond=use,
+                    true_fn=lambda p, n, m, x, y: camera.dp_dxy(p, n, scale, m),
+                    false_fn=lambda p, n, m, x, y: (x, y), label='pbrt_path: camera footprint')
                 duv_dx, duv_dy = raydiff.uv_partials(dr.detach(si.dp_du), dr.detach(si.dp_dv),
                                                      dpdx, dpdy)
                 si.duv_dx = dr.select(valid, duv_dx, 0)
