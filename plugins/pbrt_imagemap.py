@@ -38,10 +38,16 @@ like pbrt; otherwise values are not clamped (parity with ``bitmap``, negative EX
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
 pbrt-v4 does. Under Mitsuba's own integrators the footprint is always 0 (they compute no texture
-differentials), so they behave exactly as ``bitmap`` ``nearest``/``bilinear`` and their MIP pyramid
-is never built; ``pbrt_path`` (or calling ``tex.prepare_differentials()``) builds it.
-``trilinear`` and ``ewa`` build it at once. With zero differentials every filter is a bilinear
-lookup at level 0 (``point``: the nearest texel).
+differentials), so they behave exactly as ``bitmap`` ``nearest``/``bilinear`` and their pyramid
+holds level 0 alone; ``pbrt_path`` (or calling ``tex.prepare_differentials()``) builds the other
+levels, and so does ``params.update()`` once gradients are enabled on ``data``. ``trilinear`` and
+``ewa`` build every level at once. With zero differentials every filter is a bilinear lookup at
+level 0 (``point``: the nearest texel).
+
+Storage: the texture holds ``data`` (the tensor ``traverse`` exposes) and its pyramid, one value
+built from it by :func:`~mitsuba_pbrt_tex.mipmap.build_pyramid` (level 0 RGBA-padded in the same
+buffer as the other levels). Textures of the same file share the file's cached pyramid until
+their ``data`` is updated.
 
 Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
@@ -53,8 +59,8 @@ levels of 8 MB or more, batches already in coherent order, and lookups traced in
 loop or call (a render's kernel) run in the order given. See :mod:`mitsuba_pbrt_tex.lookup_order`.
 
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
-inside the AD graph by ``parameters_changed`` (``params.update()``), so gradients reach base texels
-through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
+inside the AD graph by ``parameters_changed`` (``params.update()``) — also when it is built lazily
+during a render — so gradients reach base texels through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
 reconstruction at the selected level(s).
 """
 
