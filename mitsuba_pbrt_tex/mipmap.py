@@ -16,8 +16,9 @@ function of (pyramid, wrap mode, coordinates) — :class:`MIPMap` is that pair, 
 So gradients have one path: from a lookup to the buffer, from the buffer to the tensor it was
 built from. A pyramid built while gradients are enabled on the tensor stays in its AD graph (also
 when it is built lazily during a render, see ``pbrt_imagemap``). The pyramid is a Dr.Jit struct
-(``DRJIT_STRUCT``): frozen functions (``dr.freeze``) see its buffer as an input and record its
-rebuild by ``params.update()`` inside a frozen step.
+(``DRJIT_STRUCT``): frozen functions (``dr.freeze``) see its buffer as an input, so a frozen
+render replays with the current texels; its build launches no host → device copy, so a rebuild can
+be recorded too.
 
 Memory: the buffer is at most 4/3 of its base level (RGBA for RGB); with the tensor, an RGB
 texture takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory with all levels, 1 + 4/3 ≈ 2.3× with level 0
@@ -72,7 +73,7 @@ FILTERS = ('point', 'bilinear', 'trilinear', 'ewa')
 WIDTH_CONVENTIONS = {'v3': 1.0, 'v4': 2.0}
 
 
-# ------------------------------------------------------------------------------------ pyramid
+# ------------------------------------------------------------------------------------ levels
 def level_sizes(width: int, height: int) -> list[tuple[int, int]]:
     """Sizes of all levels: halve (floor) each axis, never below 1, until 1×1."""
     sizes = [(width, height)]
