@@ -608,3 +608,96 @@ def test_bitmap_parameter_matches_mitsuba_bitmap(kind, rng):
     si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
     np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
     np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ eval_1_grad
+@pytest.mark.parametrize('filt,convention', [('trilinear', 'v3'), ('trilinear', 'v4'),
+                                             ('bilinear', 'v3')])
+def test_eval_1_grad_with_footprint_matches_finite_differences(filt, convention, rng):
+    """``eval_1_grad`` with non-zero footprints (what ``bumpmap`` gets under ``pbrt_path``): the
+    central difference of ``eval_1`` in u and v with the footprint held fixed, through a uv
+    mapping with scale and a rotating ``to_uv`` (so the st→uv Jacobian matters). Footprints put
+    the level between 1.2 and 3.8, so the trilinear result blends two levels with a fractional
+    weight, each level with its own texel size. h = 1e-4 in uv (≤ 0.02 texel at level 0);
+    lookups within 0.03 texel of a texel-centre line of any level (where the bilinear gradient
+    jumps) are excluded; the difference of a piecewise-bilinear function there is exact up to
+    float32 rounding of eval_1 (~6e-8 / 2e-4 ≈ 3e-4 absolute): rtol 1e-2, atol 2e-3."""
+    res = 64
+    img = rng.random((res, res, 3))
+    to_uv = mi.ScalarTransform4f().rotate([0, 0, 1], 25)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img.astype(np.float32)),
+                        'filter': filt, 'trilinearwidth': convention, 'uscale': 1.5,
+                        'vscale': 0.75, 'to_uv': to_uv})
+    tex.prepare_differentials()
+    n = 400
+    uv = rng.uniform(0.1, 0.9, (n, 2))
+    factor = 2.0 if convention == 'v4' else 1.0
+    level = rng.uniform(1.2, 3.8, n)
+    width_st = 2.0 ** level / res / factor               # max |d(st)| that selects the level
+    # st derivatives (ds/dx, dt/dx) = (width, 0.3 width), (ds/dy, dt/dy) = (-0.4 w, 0.2 w),
+    # mapped back to uv through the inverse of the mapping's 2×2 matrix
+    M = np.diag([1.5, 0.75]) @ np.array(to_uv.matrix)[:2, :2]
+    Minv = np.linalg.inv(M)
+    dst_x = np.stack([width_st, 0.3 * width_st], 1)
+    dst_y = np.stack([-0.4 * width_st, 0.2 * width_st], 1)
+    d0, d1 = dst_x @ Minv.T, dst_y @ Minv.T
+    h = 1e-4
+
+    def f(shift):
+        return A(tex.eval_1(make_si(uv + shift, d0, d1)))
+
+    fd = np.stack([(f([h, 0]) - f([-h, 0])) / (2 * h), (f([0, h]) - f([0, -h])) / (2 * h)], 1)
+    got = A(tex.eval_1_grad(make_si(uv, d0, d1)))
+    st = uv @ M.T + np.array(to_uv.matrix)[:2, 3] * [1.5, 0.75]
+    ok = np.ones(n, bool)
+    for lv in range(0, 7):
+        size = res >> lv
+        for c in range(2):
+            p = st[:, c] * size - 0.5
+            ok &= np.abs(p - np.round(p)) > 0.03
+    assert ok.sum() > 100
+    np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
+
+
+@pytest.mark.parametrize('convention,factor', [('v3', 1.0), ('v4', 2.0)])
+@pytest.mark.parametrize('filt', ['point', 'bilinear'])
+def test_single_level_filters_select_level_under_anisotropic_footprints(filt, convention, factor,
+                                                                         rng):
+    """Random anisotropic footprints (ratio up to 20, any orientation, either vector the major,
+    widths 0.3–80 texels) on a non-square 48×80 image: pbrt-v4's single-level rule, written here
+    from the text — width = factor·max(|ds/dx|, |dt/dx|, |ds/dy|, |dt/dy|), level
+    floor(log2(width·max(W, H))) clamped to [0, L-1] — then a point (Mitsuba's floor rule) or
+    bilinear lookup at that level of the reference pyramid. Lookups within 1e-4 of a level
+    boundary (float32 log2) are excluded; the rest match to 1e-5 (float32 texel coordinates
+    u·W - 0.5 with |u| ≤ 1.5 carry ~1.5·80·6e-8 ≈ 7e-6 texel of rounding, as in
+    test_zero_differentials_every_filter_is_bilinear_level0). A rule
+    that uses the minor axis, the mean of the axes, or max(W, H) → min, picks other levels."""
+    img = rng.random((48, 80, 3))
+    tex = imagemap(img, filter=filt, trilinearwidth=convention)
+    assert tex.prepare_differentials()
+    n = 500
+    uv = rng.uniform(-0.5, 1.5, (n, 2))
+    major = np.exp(rng.uniform(np.log(0.3), np.log(80), n))
+    ratio = np.exp(rng.uniform(0, np.log(20), n))
+    ang = rng.uniform(0, math.pi, n)
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * (major / 80)[:, None]
+    d1 = np.stack([-np.sin(ang), np.cos(ang)], 1) * (major / ratio / 80)[:, None]
+    swap = rng.random(n) < 0.5
+    d0[swap], d1[swap] = d1[swap].copy(), d0[swap].copy()
+    got = A(tex.eval(make_si(uv, d0, d1)))
+    levels = ref.pyramid(img)
+    width = factor * np.abs(np.concatenate([d0, d1], 1)).max(1)
+    level = np.log2(width * 80)
+    il = np.clip(np.floor(level), 0, len(levels) - 1).astype(int)
+    clear = np.abs(level - np.round(level)) > 1e-4
+    want = np.empty((n, 3))
+    for k in range(n):
+        lv = levels[il[k]]
+        if filt == 'bilinear':
+            want[k] = ref.bilinear(lv, uv[k:k + 1, 0], uv[k:k + 1, 1], 'repeat')[0]
+        else:
+            hh, ww = lv.shape[:2]
+            want[k] = ref.texel(lv, np.floor(uv[k, 0] * ww).astype(int),
+                                np.floor(uv[k, 1] * hh).astype(int), 'repeat')
+    assert clear.mean() > 0.95 and len(set(il[clear])) >= 5
+    np.testing.assert_allclose(got[clear], want[clear], atol=1e-5)
