@@ -311,6 +311,18 @@ def test_hard_cases_stay_finite_and_in_range(shape, filt, wrap, rng):
     assert out.shape == (n, 3) and np.isfinite(out).all()
     lo = 0.0 if wrap == 'black' else img.min()
     assert (out >= lo - 1e-6).all() and (out <= img.max() + 1e-6).all()
+    # where the value is known: rows 0 (uv (.5, .5), zero footprint) are the level-0 lookup
+    # of the numpy reference (point: the texel containing uv; the others: bilinear; 2e-6 as
+    # the level-0 tests); rows 4 (footprint 1e8 texture widths at uv ±inf) cover the
+    # texture: pbrt's top level, the image mean, with every wrap (2e-6). (Not rows 8: a
+    # 1e-30 minor axis squares to 0 in float32, where pbrt-v4's EWA returns a level-0 lookup.)
+    h, w = shape
+    if filt == 'point':
+        zero = ref.texel(img, np.array([int(0.5 * w)]), np.array([int(0.5 * h)]), wrap)[0]
+    else:
+        zero = ref.bilinear(img, np.array([0.5]), np.array([0.5]), wrap)[0]
+    np.testing.assert_allclose(out[0::10], np.tile(zero, (3, 1)), atol=2e-6)
+    np.testing.assert_allclose(out[4::10], np.tile(img.mean((0, 1)), (3, 1)), atol=2e-6)
 
 
 def test_anisotropy_clamp_widens_minor_axis(rng):
@@ -427,13 +439,50 @@ def test_file_pyramid_shared_and_built_once_across_threads():
 
 
 def test_scene_with_identical_textures_loads_in_parallel():
+    """Eight textures of one file built on Mitsuba's worker threads. The load runs on a daemon
+    thread that must finish within 120 s (it takes < 1 s): a deadlock fails the test instead of
+    hanging the suite. Each loaded texture then equals Mitsuba's ``bitmap`` of the file (zero
+    footprint: level-0 bilinear; ≤ 1e-6 as the parity tests), with its own uscale."""
     path = os.path.join(DATA, 'srgb_11x9.png')
     shapes = {f's{i}': {'type': 'sphere', 'center': [i, 0, 0], 'radius': 0.3,
                         'bsdf': {'type': 'diffuse', 'reflectance': {
                             'type': 'pbrt_imagemap', 'filename': path, 'filter': 'trilinear',
                             'uscale': float(1 + i % 2)}}} for i in range(8)}
-    scene = mi.load_dict({'type': 'scene', **shapes}, parallel=True)
+    out = {}
+
+    def load():
+        try:
+            out['scene'] = mi.load_dict({'type': 'scene', **shapes}, parallel=True)
+        except Exception as e:          # reported below, on the test's thread
+            out['error'] = e
+
+    worker = threading.Thread(target=load, daemon=True)
+    worker.start()
+    worker.join(timeout=120)
+    if worker.is_alive():
+        pytest.fail('parallel scene load did not finish within 120 s (deadlock?)')
+    assert 'error' not in out, out.get('error')
+    scene = out['scene']
     assert len(scene.shapes()) == 8
+    uv = np.random.default_rng(5).uniform(-1, 2, (64, 2))
+    bitmap = mi.load_dict({'type': 'bitmap', 'filename': path})
+    for shape in scene.shapes():
+        reflectance = [c for c in _children(shape.bsdf()) if isinstance(c, mi.Texture)][0]
+        uscale = 1.0 + (int(shape.id()[1:]) % 2)
+        want = A(bitmap.eval(make_si(uv * [uscale, 1.0])))
+        np.testing.assert_allclose(A(reflectance.eval(make_si(uv))), want, atol=1e-6)
+
+
+def _children(obj):
+    """Mitsuba objects directly referenced by ``obj`` (through its traversal)."""
+    found = []
+
+    class Collect(mi.TraversalCallback):
+        def put(self, name, value, flags):
+            if isinstance(value, mi.Object):
+                found.append(value)
+    obj.traverse(Collect())
+    return found
 
 
 
