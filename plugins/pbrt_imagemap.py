@@ -58,6 +58,9 @@ through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the 
 reconstruction at the selected level(s).
 """
 
+import math
+import threading
+
 import drjit as dr
 import mitsuba as mi
 
@@ -68,10 +71,22 @@ from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid
 from mitsuba_pbrt_tex.params import PluginError
+from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
+                                       uv_axes)
 from mitsuba_pbrt_tex.texture import PbrtTexture
 from mitsuba_pbrt_tex.wrap import WRAP_MODES
 
 FORMATS = ('auto', 'variant', 'float16', 'fp16', 'uint8')
+
+
+def integer_data_message(value) -> str:
+    shape = tuple(getattr(value, 'shape', ()))
+    return (f'got an integer tensor ({type(value).__name__} of shape {shape}); accepted: a '
+            f'TensorXf of linear float32 values, shape (H, W, 1) or (H, W, 3). Mitsuba\'s bitmap '
+            f'stores 8-bit images as uint8 sRGB codes, pbrt_imagemap as linear floats: decode '
+            f'codes c with c/255 (raw) or the sRGB curve, e.g. '
+            f'mi.TensorXf(mi.Bitmap(...).convert(component_format=mi.Struct.Type.Float32, '
+            f'srgb_gamma=False))')
 
 
 class Plugin(PbrtTexture):
@@ -85,12 +100,14 @@ class Plugin(PbrtTexture):
         self.sort_lookups = p.bool('sortlookups', True)
         self.wrap = p.enum('wrap', 'repeat', WRAP_MODES, alias='wrap_mode',
                            alias_choices={'repeat': 'repeat', 'mirror': 'mirror', 'clamp': 'clamp'})
-        self.scale = self.jit_value('scale', p.float('scale', 1.0))
+        self._scale_value = p.float('scale', 1.0)
+        self.scale = self.jit_value('scale', self._scale_value)
         self.invert = p.bool('invert', False)
         self.width_convention = p.enum('trilinearwidth', 'v3', WIDTH_CONVENTIONS)
         p.enum('format', 'auto', FORMATS)
         p.bool('accel', True)
         self.mapping = mapping_2d(p)
+        self._sampler, self._sampler_lock = None, threading.Lock()    # built when an emitter asks
         encoding = self._encoding(p)
         self._load(p, encoding)
         self.describe('source', self.source)
@@ -162,6 +179,8 @@ class Plugin(PbrtTexture):
             raise PluginError(f'{self.NAME}: parameter "{param}": {e}') from None
 
     def _checked_tensor(self, value, p):
+        if dr.is_tensor_v(value) and dr.is_integral_v(value):
+            raise p.error('data', integer_data_message(value))
         if not isinstance(value, mi.TensorXf) or len(value.shape) != 3 or value.shape[2] not in (1, 3) \
                 or min(value.shape[:2]) < 1:
             shape = getattr(value, 'shape', None)
@@ -243,8 +262,18 @@ class Plugin(PbrtTexture):
     def traverse(self, cb):
         cb.put('data', self.data, mi.ParamFlags.Differentiable)
         cb.put('scale', self.scale, mi.ParamFlags.Differentiable)
+        if self.mapping.name == 'uv':
+            if getattr(self, '_to_uv', None) is None:
+                self._to_uv = self.mapping.to_uv_3x3()
+            cb.put('to_uv', self._to_uv, mi.ParamFlags.NonDifferentiable)
 
     def on_parameters_changed(self, keys):
+        if (not keys or 'to_uv' in keys) and getattr(self, '_to_uv', None) is not None:
+            self._set_to_uv(self._to_uv)
+        if not keys or 'scale' in keys:
+            self._scale_value = float(dr.detach(self.scale)[0])
+        if not keys or {'data', 'scale', 'to_uv'} & set(keys):
+            self._sampler = None            # rebuilt when an emitter next asks
         if keys and 'data' not in keys:
             return
         t = self.data
@@ -258,3 +287,60 @@ class Plugin(PbrtTexture):
             self.pyramid.build()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
         self._make_filter()
+
+    # ------------------------------------------------------------------ emitters, light tracing
+    def _set_to_uv(self, to_uv):
+        """Rebuild the uv mapping after ``params['...to_uv']`` changed (as ``bitmap``)."""
+        if not isinstance(to_uv, mi.ScalarAffineTransform3f):
+            raise PluginError(f'{self.NAME}: parameter "to_uv": expected a '
+                              f'mi.ScalarAffineTransform3f (as bitmap), got {type(to_uv).__name__}')
+        m = to_uv.matrix
+        values = [float(m[i][j]) for i in range(3) for j in range(3)]
+        if not all(math.isfinite(x) for x in values) or values[6:] != [0.0, 0.0, 1.0]:
+            raise PluginError(f'{self.NAME}: parameter "to_uv": expected a finite affine 2D '
+                              f'transform (last row 0, 0, 1), got the matrix {values}')
+        self.mapping = self.mapping.with_to_uv(to_uv)
+        self.describe('mapping', self.mapping.describe())
+
+    def _position_sampler(self) -> PositionSampler:
+        sampler = self._sampler
+        if sampler is None:
+            with self._sampler_lock:
+                if self._sampler is None:
+                    self._sampler = self._build_position_sampler()
+                sampler = self._sampler
+        return sampler
+
+    def _build_position_sampler(self) -> PositionSampler:
+        axes, why = uv_axes(self.mapping, self.wrap)
+        if axes is None:
+            mi.Log(mi.LogLevel.Warn,
+                   f'{self.NAME}: parameters "mapping"/"to_uv"/"uscale"/"vscale"/"udelta"/'
+                   f'"vdelta": position sampling (an area emitter\'s or projector\'s radiance) '
+                   f'is not proportional to the texture with {why}; positions are sampled '
+                   f'uniformly in uv instead (unbiased, noisier)')
+            return PositionSampler(None, None)
+        # the texels as the user's tensor holds them (evaluated: reading them is allowed while
+        # Mitsuba traces a kernel, which is when an emitter first asks)
+        texels = dr.detach(self.data).numpy()
+        weights = texel_weights(texels, self._scale_value, self.invert)
+        return PositionSampler(TextureSpaceSampler(weights, self.filter_name == 'point',
+                                                   self.wrap), axes)
+
+    def sample_position(self, sample, active=True):
+        """A uv position with density ∝ the texture's (zero-footprint) value, and that density
+        per unit uv area (see :mod:`mitsuba_pbrt_tex.sampling`)."""
+        return self._position_sampler().sample(mi.Point2f(sample), mi.Bool(active))
+
+    def pdf_position(self, p, active=True):
+        return self._position_sampler().pdf(mi.Point2f(p), mi.Bool(active))
+
+    def sample_spectrum(self, si, sample, active=True):
+        """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as
+        ``bitmap`` (light tracing and emitters' ``sample_ray`` call this)."""
+        return type(si.wavelengths)(), self.eval(si, active)
+
+    def pdf_spectrum(self, si, active=True):
+        """RGB and mono variants: no wavelengths are sampled, so the density is empty
+        (``bitmap`` raises NotImplementedError here)."""
+        return type(si.wavelengths)()
