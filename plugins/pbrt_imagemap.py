@@ -63,6 +63,7 @@ import threading
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
@@ -270,7 +271,9 @@ class Plugin(PbrtTexture):
     def on_parameters_changed(self, keys):
         if (not keys or 'to_uv' in keys) and getattr(self, '_to_uv', None) is not None:
             self._set_to_uv(self._to_uv)
-        if not keys or 'scale' in keys:
+        if self.invert and (not keys or 'scale' in keys):
+            # only invert makes the sampling density depend on the scale (read now, outside
+            # any kernel being traced)
             self._scale_value = float(dr.detach(self.scale)[0])
         if not keys or {'data', 'scale', 'to_uv'} & set(keys):
             self._sampler = None            # rebuilt when an emitter next asks
@@ -280,6 +283,7 @@ class Plugin(PbrtTexture):
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
+        self._warn_if_codes()
         had_levels = self.pyramid.built
         self._shared = None
         self.pyramid = Pyramid(self.data).prepare()
@@ -287,6 +291,26 @@ class Plugin(PbrtTexture):
             self.pyramid.build()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
         self._make_filter()
+
+    def _warn_if_codes(self):
+        """Warn when data written through ``params`` looks like ``bitmap``'s 8-bit codes.
+
+        Mitsuba's ``SceneParameters`` converts whatever is written into ``params['...data']``
+        (a TensorXu8 of codes, a numpy uint8 array) to the parameter's type, TensorXf, before the
+        plugin is told, so an integer tensor cannot be refused here as it is at construction.
+        Texels that are all integers in [0, 255] with some above 1 are what such a write
+        leaves; linear radiance can be like that too, so this warns rather than refuses. Skipped
+        for tensors with gradients (an optimiser's step), where it would cost a sync per step.
+        """
+        if dr.grad_enabled(self.data):
+            return
+        v = self.data.numpy()
+        if v.size and v.max() > 1 and v.min() >= 0 and v.max() <= 255 and \
+                np.all(v == np.round(v)):
+            mi.Log(mi.LogLevel.Warn,
+                   f'{self.NAME}: parameter "data": the new texels are all integers in [0, 255] '
+                   f'(max {v.max():g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
+                   f'{integer_data_message(self.data).split("; accepted: ")[1]}')
 
     # ------------------------------------------------------------------ emitters, light tracing
     def _set_to_uv(self, to_uv):
@@ -323,7 +347,7 @@ class Plugin(PbrtTexture):
         # the texels as the user's tensor holds them (evaluated: reading them is allowed while
         # Mitsuba traces a kernel, which is when an emitter first asks)
         texels = dr.detach(self.data).numpy()
-        weights = texel_weights(texels, self._scale_value, self.invert)
+        weights = texel_weights(texels, self._scale_value if self.invert else 1.0, self.invert)
         return PositionSampler(TextureSpaceSampler(weights, self.filter_name == 'point',
                                                    self.wrap), axes)
 

@@ -146,6 +146,20 @@ def test_sample_position_follows_pdf_position(filt, wrap, rng):
         np.max(np.abs(counts - expected) / (sigma + 1))
 
 
+@pytest.mark.parametrize('wrap', WRAPS)
+@pytest.mark.parametrize('filt', FILTERS)
+def test_sample_position_passes_mitsubas_chi2_test(filt, wrap, rng):
+    """Mitsuba's own test of bitmap's position sampling (v3.9.1 test_bitmap.py test01: its
+    chi-square harness, 201² cells, significance 1%) with pbrt_imagemap substituted, on every
+    filter and wrap (its image, carrot.png, is in Mitsuba's data repository: ours here)."""
+    tex = imagemap(test_image(rng), filter=filt, wrap=wrap)
+    chi2 = mi.chi2.ChiSquareTest(
+        domain=mi.chi2.PlanarDomain(mi.ScalarBoundingBox2f([0, 0], [1, 1])),
+        sample_func=lambda s: tex.sample_position(s)[0],
+        pdf_func=lambda p: tex.pdf_position(p), sample_dim=2, res=201, ires=8)
+    assert chi2.run(), chi2.messages
+
+
 # (to_uv, uscale/vscale, ...) combinations whose density is exact (see mitsuba_pbrt_tex.sampling)
 EXACT_MAPPINGS = [
     ('flip u', {'to_uv': T().translate([1, 0, 0]) @ T().scale([-1, 1, 1])}, 'clamp'),
@@ -199,8 +213,8 @@ def test_unsupported_mapping_falls_back_to_uniform_with_warning(capfd, rng):
 
 def test_position_density_with_invert_scale_and_one_channel(rng):
     """invert: the density is positive wherever the inverted texture is (it is the interpolant
-    of the inverted texels, ≥ the inverted interpolant); 1-channel images and scale 0 (all black:
-    uniform density) work."""
+    of the inverted texels, ≥ the inverted interpolant); 1-channel images and an all-black image
+    (uniform density) work."""
     img = test_image(rng, channels=1)
     tex = imagemap(img, invert=True, scale=0.9)
     uv = uv_grid(100)
@@ -211,8 +225,8 @@ def test_position_density_with_invert_scale_and_one_channel(rng):
     v1 = A(plain.eval_1(make_si(uv)))
     p1 = A(plain.pdf_position(mi.Point2f(uv[:, 0], uv[:, 1])))
     np.testing.assert_allclose(p1 * v1.mean(), v1, rtol=2e-3, atol=1e-6)
-    zero = imagemap(img, scale=0.0)
-    np.testing.assert_array_equal(A(zero.pdf_position(mi.Point2f([0.1, 0.6], [0.3, 0.2]))), 1)
+    black = imagemap(np.zeros((3, 4, 3)))
+    np.testing.assert_array_equal(A(black.pdf_position(mi.Point2f([0.1, 0.6], [0.3, 0.2]))), 1)
 
 
 def test_position_density_follows_parameter_updates(rng):
@@ -472,6 +486,24 @@ def test_integer_data_is_rejected_with_the_decoding_hint(tensor):
     for words in ('pbrt_imagemap: parameter "data"', f'{tensor} of shape (2, 3, 3)',
                   'accepted: a TensorXf of linear float32 values', 'sRGB'):
         assert words in msg, (words, msg[-400:])
+
+
+def test_codes_written_through_params_warn(capfd, rng):
+    """Mitsuba converts a TensorXu8 written into params['...data'] to TensorXf before the
+    plugin hears of it, so there it can only warn: all-integer texels in [0, 255] above 1 (what
+    bitmap-style codes leave) warn with the decoding hint; ordinary float data does not."""
+    tex = imagemap(rng.random((4, 4, 3)))
+    params = mi.traverse(tex)
+    params['data'] = mi.TensorXf(rng.random((4, 4, 3)).astype(np.float32))
+    params.update()
+    assert 'integers in [0, 255]' not in ''.join(capfd.readouterr())
+    params['data'] = mi.TensorXu8(np.full((4, 4, 3), 200, np.uint8))
+    params.update()
+    out = ''.join(capfd.readouterr())
+    assert type(params['data']) is mi.TensorXf and np.array(params['data']).max() == 200
+    for words in ('pbrt_imagemap: parameter "data"', 'integers in [0, 255] (max 200)',
+                  'linear float32', 'sRGB'):
+        assert words in out, (words, out)
 
 
 def test_data_is_linear_float32_where_bitmap_holds_srgb_codes():
