@@ -394,6 +394,25 @@ def test_spot_light_tracing_equals_bitmap():
     assert np.max(np.abs(imgs[0] - imgs[1])) <= 1e-6 * imgs[1].max()
 
 
+def test_emitter_texel_gradients_match_bitmap():
+    """prb differentiates through the sampled emitter (the density is a constant of the
+    texels, as bitmap's): d(mean image)/d(texels) summed over all texels and over the bright
+    patch agree with bitmap's within 1% and 2% (64 spp, different position samples; measured
+    0.03% and 0.07%)."""
+    grads = {}
+    for key, tex in (('ours', ours_tex(EMITTER_IMG)), ('bitmap', bitmap_tex(EMITTER_IMG))):
+        scene = emitter_scene(tex, 'prb', max_depth=2)
+        params = mi.traverse(scene)
+        k = 'light.emitter.radiance.data'
+        dr.enable_grad(params[k])
+        params.update()
+        dr.backward(dr.mean(mi.render(scene, params, spp=64, seed=1), axis=None))
+        grads[key] = dr.grad(params[k]).numpy()
+    g, b = grads['ours'], grads['bitmap']
+    assert b.sum() > 0 and abs(g.sum() / b.sum() - 1) < 0.01
+    assert abs(g[20:22, 8:10].sum() / b[20:22, 8:10].sum() - 1) < 0.02
+
+
 def test_emitter_to_uv_is_sampled_consistently():
     """An emitter texture with a to_uv flip renders the same image as bitmap given the flipped
     data: RMSE ≤ 4e-4 at 512 spp (two independent renders differ by ≈ 2.5e-4 from noise alone;
