@@ -7,7 +7,7 @@ pbrt-v4's filters (pbrt section 10.4).
 |---|---|---|---|---|
 | filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
 | bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
-| data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear (runtime only) | yes |
+| data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear float32 (runtime only; integer tensors are refused; ``params['...data']`` is this linear tensor for every source, where ``bitmap`` exposes 8-bit images as uint8 sRGB codes) | yes |
 | filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
@@ -21,7 +21,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | trilinearwidth | string | v3 | footprint width of point/bilinear/trilinear: `v3` = max abs derivative (pbrt-v3), `v4` = twice that (pbrt-v4) | no |
 | format | string | auto | Mitsuba ``bitmap`` storage option, accepted for drop-in use; storage is always float32 | no |
 | accel | boolean | true | Mitsuba ``bitmap`` option, accepted for drop-in use; no effect | no |
-| (2D mapping) | | | mapping parameters (``to_uv`` included), see the mapping table | no |
+| (2D mapping) | | | mapping parameters (``to_uv`` included; with the `uv` mapping ``to_uv`` is in ``mi.traverse`` as with ``bitmap``), see the mapping table | no |
 
 Exactly one of ``filename``, ``bitmap``, ``data``. A pbrt name and its ``bitmap`` alias together
 are an error.
@@ -32,8 +32,9 @@ top), texel centres at ``((i + 0.5)/W, (j + 0.5)/H)``, no flip. pbrt-v4 instead 
 anisotropic EWA footprints; we do not flip, so nothing needs negating (Mitsuba's OBJ loader already
 flips v, so images appear upright on OBJ meshes).
 
-Channels: 1-channel images give grey colours and their value as float; RGB images give colours,
-and their luminance as float (``eval_1``, as ``bitmap``). Alpha is dropped. ``invert`` clamps at 0
+Channels: 1-channel images give grey colours (``eval``, and ``eval_3``, where ``bitmap`` raises)
+and their value as float; RGB images give colours, and their luminance as float (``eval_1``, as
+``bitmap``). Alpha is dropped. ``invert`` clamps at 0
 like pbrt; otherwise values are not clamped (parity with ``bitmap``, negative EXR texels survive).
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
@@ -51,6 +52,17 @@ caller's order: the same values, 2.5–3.5× faster at random uv on a 1024² tex
 lookups``). Batches under 16384 lookups, batches with fewer than a quarter of their lookups on
 levels of 8 MB or more, batches already in coherent order, and lookups traced inside a symbolic
 loop or call (a render's kernel) run in the order given. See :mod:`mitsuba_pbrt_tex.lookup_order`.
+
+Emitters and light tracing (the rest of ``bitmap``'s interface): ``sample_position`` /
+``pdf_position`` importance-sample uv positions for area emitters and projectors, with a density
+exactly proportional to the zero-footprint lookup for every filter and wrap mode, carried through
+uv flips, 90° rotations and integer tilings (other mappings: uniform, with a warning); the tables
+are built the first time an emitter asks and again after ``data``, ``to_uv`` (or, with
+``invert``, ``scale``) change. See :mod:`mitsuba_pbrt_tex.sampling`. ``sample_spectrum`` returns
+the value and no wavelengths (RGB and mono variants, as ``bitmap``), which ``ptracer`` and the
+emitters' ``sample_ray`` need; ``pdf_spectrum`` returns empty wavelengths. ``to_uv`` written
+through ``params`` rebuilds the mapping. A bare ``mi.SurfaceInteraction3f()`` with only ``uv``
+set is evaluated with zero differentials.
 
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
 inside the AD graph by ``parameters_changed`` (``params.update()``), so gradients reach base texels
