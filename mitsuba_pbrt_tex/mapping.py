@@ -115,9 +115,24 @@ class UVMapping:
         s, d = (su, sv), (du, dv)
         self.a = [[s[r] * m[r][0], s[r] * m[r][1]] for r in range(2)]
         self.b = [s[r] * m[r][2] + d[r] for r in range(2)]
+        self.to_uv = m                  # its 2x3 affine matrix (identity when not given)
         self.params = dict(uscale=su, vscale=sv, udelta=du, vdelta=dv)
         if to_uv is not None:
             self.params['to_uv'] = 'custom'
+
+    def to_uv_3x3(self) -> mi.ScalarAffineTransform3f:
+        """``to_uv`` as Mitsuba's ``bitmap`` exposes it in ``mi.traverse``."""
+        (a, b, c), (d, e, f) = self.to_uv
+        return mi.ScalarAffineTransform3f(mi.ScalarMatrix3f(a, b, c, d, e, f, 0, 0, 1))
+
+    def with_to_uv(self, to_uv3) -> 'UVMapping':
+        """The same scale and offset after another ``to_uv`` (a 3x3 affine transform)."""
+        m = to_uv3.matrix
+        t4 = mi.ScalarTransform4f(mi.ScalarMatrix4f(m[0][0], m[0][1], 0, m[0][2],
+                                                    m[1][0], m[1][1], 0, m[1][2],
+                                                    0, 0, 1, 0, 0, 0, 0, 1))
+        p = self.params
+        return UVMapping(p['uscale'], p['vscale'], p['udelta'], p['vdelta'], t4)
 
     def map(self, ctx: TextureEvalContext) -> TexCoord2D:
         (a00, a01), (a10, a11) = self.a

@@ -33,7 +33,7 @@ class Plugin(PbrtTexture):
         self.describe('dir', list(self.dir))
 
     def evaluate(self, si, kind, active):
-        amount = dr.abs(dr.dot(mi.Vector3f(si.n), mi.Vector3f(self.dir)))
+        amount = dr.abs(dr.dot(mi.Vector3f(self.context(si).n), mi.Vector3f(self.dir)))
         use1, use2 = amount != 0, amount != 1
         t1 = self.nested_eval('tex1', si, kind, active & use1)
         t2 = self.nested_eval('tex2', si, kind, active & use2)

@@ -7,7 +7,7 @@ pbrt-v4's filters (pbrt section 10.4).
 |---|---|---|---|---|
 | filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
 | bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
-| data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear (runtime only) | yes |
+| data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear float32 (runtime only; integer tensors are refused; ``params['...data']`` is this linear tensor for every source, where ``bitmap`` exposes 8-bit images as uint8 sRGB codes) | yes |
 | filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
@@ -21,7 +21,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | trilinearwidth | string | v3 | footprint width of point/bilinear/trilinear: `v3` = max abs derivative (pbrt-v3), `v4` = twice that (pbrt-v4) | no |
 | format | string | auto | Mitsuba ``bitmap`` storage option, accepted for drop-in use; storage is always float32 | no |
 | accel | boolean | true | Mitsuba ``bitmap`` option, accepted for drop-in use; no effect | no |
-| (2D mapping) | | | mapping parameters (``to_uv`` included), see the mapping table | no |
+| (2D mapping) | | | mapping parameters (``to_uv`` included; with the `uv` mapping ``to_uv`` is in ``mi.traverse`` as with ``bitmap``), see the mapping table | no |
 
 Exactly one of ``filename``, ``bitmap``, ``data``. A pbrt name and its ``bitmap`` alias together
 are an error.
@@ -32,8 +32,9 @@ top), texel centres at ``((i + 0.5)/W, (j + 0.5)/H)``, no flip. pbrt-v4 instead 
 anisotropic EWA footprints; we do not flip, so nothing needs negating (Mitsuba's OBJ loader already
 flips v, so images appear upright on OBJ meshes).
 
-Channels: 1-channel images give grey colours and their value as float; RGB images give colours,
-and their luminance as float (``eval_1``, as ``bitmap``). Alpha is dropped. ``invert`` clamps at 0
+Channels: 1-channel images give grey colours (``eval``, and ``eval_3``, where ``bitmap`` raises)
+and their value as float; RGB images give colours, and their luminance as float (``eval_1``, as
+``bitmap``). Alpha is dropped. ``invert`` clamps at 0
 like pbrt; otherwise values are not clamped (parity with ``bitmap``, negative EXR texels survive).
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
@@ -58,14 +59,29 @@ lookups``). Batches under 16384 lookups, batches with fewer than a quarter of th
 levels of 8 MB or more, batches already in coherent order, and lookups traced inside a symbolic
 loop or call (a render's kernel) run in the order given. See :mod:`mitsuba_pbrt_tex.lookup_order`.
 
+Emitters and light tracing (the rest of ``bitmap``'s interface): ``sample_position`` /
+``pdf_position`` importance-sample uv positions for area emitters and projectors, with a density
+exactly proportional to the zero-footprint lookup for every filter and wrap mode, carried through
+uv flips, 90° rotations and integer tilings (other mappings: uniform, with a warning); the tables
+are built the first time an emitter asks and again after ``data``, ``to_uv`` (or, with
+``invert``, ``scale``) change. See :mod:`mitsuba_pbrt_tex.sampling`. ``sample_spectrum`` returns
+the value and no wavelengths (RGB and mono variants, as ``bitmap``), which ``ptracer`` and the
+emitters' ``sample_ray`` need; ``pdf_spectrum`` returns empty wavelengths. ``to_uv`` written
+through ``params`` rebuilds the mapping. A bare ``mi.SurfaceInteraction3f()`` with only ``uv``
+set is evaluated with zero differentials.
+
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
 inside the AD graph by ``parameters_changed`` (``params.update()``) — also when it is built lazily
 during a render — so gradients reach base texels through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
 reconstruction at the selected level(s).
 """
 
+import math
+import threading
+
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
@@ -74,10 +90,22 @@ from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, Pyramid, build_pyramid
 from mitsuba_pbrt_tex.params import PluginError
+from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
+                                       uv_axes)
 from mitsuba_pbrt_tex.texture import PbrtTexture
 from mitsuba_pbrt_tex.wrap import WRAP_MODES
 
 FORMATS = ('auto', 'variant', 'float16', 'fp16', 'uint8')
+
+
+def integer_data_message(value) -> str:
+    shape = tuple(getattr(value, 'shape', ()))
+    return (f'got an integer tensor ({type(value).__name__} of shape {shape}); accepted: a '
+            f'TensorXf of linear float32 values, shape (H, W, 1) or (H, W, 3). Mitsuba\'s bitmap '
+            f'stores 8-bit images as uint8 sRGB codes, pbrt_imagemap as linear floats: decode '
+            f'codes c with c/255 (raw) or the sRGB curve, e.g. '
+            f'mi.TensorXf(mi.Bitmap(...).convert(component_format=mi.Struct.Type.Float32, '
+            f'srgb_gamma=False))')
 
 
 class Plugin(PbrtTexture):
@@ -91,12 +119,14 @@ class Plugin(PbrtTexture):
         self.sort_lookups = p.bool('sortlookups', True)
         self.wrap = p.enum('wrap', 'repeat', WRAP_MODES, alias='wrap_mode',
                            alias_choices={'repeat': 'repeat', 'mirror': 'mirror', 'clamp': 'clamp'})
-        self.scale = self.jit_value('scale', p.float('scale', 1.0))
+        self._scale_value = p.float('scale', 1.0)
+        self.scale = self.jit_value('scale', self._scale_value)
         self.invert = p.bool('invert', False)
         self.width_convention = p.enum('trilinearwidth', 'v3', WIDTH_CONVENTIONS)
         p.enum('format', 'auto', FORMATS)
         p.bool('accel', True)
         self.mapping = mapping_2d(p)
+        self._sampler, self._sampler_lock = None, threading.Lock()    # built when an emitter asks
         encoding = self._encoding(p)
         self._load(p, encoding)
         self.describe('source', self.source)
@@ -158,6 +188,8 @@ class Plugin(PbrtTexture):
             raise PluginError(f'{self.NAME}: parameter "{param}": {e}') from None
 
     def _checked_tensor(self, value, p):
+        if dr.is_tensor_v(value) and dr.is_integral_v(value):
+            raise p.error('data', integer_data_message(value))
         if not isinstance(value, mi.TensorXf) or len(value.shape) != 3 or value.shape[2] not in (1, 3) \
                 or min(value.shape[:2]) < 1:
             shape = getattr(value, 'shape', None)
@@ -263,17 +295,107 @@ class Plugin(PbrtTexture):
     def traverse(self, cb):
         cb.put('data', self.data, mi.ParamFlags.Differentiable)
         cb.put('scale', self.scale, mi.ParamFlags.Differentiable)
+        if self.mapping.name == 'uv':
+            if getattr(self, '_to_uv', None) is None:
+                self._to_uv = self.mapping.to_uv_3x3()
+            cb.put('to_uv', self._to_uv, mi.ParamFlags.NonDifferentiable)
 
     def on_parameters_changed(self, keys):
+        if (not keys or 'to_uv' in keys) and getattr(self, '_to_uv', None) is not None:
+            self._set_to_uv(self._to_uv)
+        if self.invert and (not keys or 'scale' in keys):
+            # only invert makes the sampling density depend on the scale (read now, outside
+            # any kernel being traced)
+            self._scale_value = float(dr.detach(self.scale)[0])
+        if not keys or {'data', 'scale', 'to_uv'} & set(keys):
+            self._sampler = None            # rebuilt when an emitter next asks
         if keys and 'data' not in keys:
             return
         t = self.data
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
+        self._warn_if_codes()
         self._shared = None
         # Texels being differentiated get every level now: forward mode propagates the input's
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
         # lazily during the render (under pbrt_path) would miss it.
         self.pyramid = self._build(self.pyramid.complete or dr.grad_enabled(self.data))
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
+
+    def _warn_if_codes(self):
+        """Warn when data written through ``params`` looks like ``bitmap``'s 8-bit codes.
+
+        Mitsuba's ``SceneParameters`` converts whatever is written into ``params['...data']``
+        (a TensorXu8 of codes, a numpy uint8 array) to the parameter's type, TensorXf, before the
+        plugin is told, so an integer tensor cannot be refused here as it is at construction.
+        Texels that are all integers in [0, 255] with some above 1 are what such a write
+        leaves; linear radiance can be like that too, so this warns rather than refuses. Skipped
+        for tensors with gradients (an optimiser's step), where it would cost a sync per step.
+        """
+        if dr.grad_enabled(self.data):
+            return
+        v = self.data.numpy()
+        if v.size and v.max() > 1 and v.min() >= 0 and v.max() <= 255 and \
+                np.all(v == np.round(v)):
+            mi.Log(mi.LogLevel.Warn,
+                   f'{self.NAME}: parameter "data": the new texels are all integers in [0, 255] '
+                   f'(max {v.max():g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
+                   f'{integer_data_message(self.data).split("; accepted: ")[1]}')
+
+    # ------------------------------------------------------------------ emitters, light tracing
+    def _set_to_uv(self, to_uv):
+        """Rebuild the uv mapping after ``params['...to_uv']`` changed (as ``bitmap``)."""
+        if not isinstance(to_uv, mi.ScalarAffineTransform3f):
+            raise PluginError(f'{self.NAME}: parameter "to_uv": expected a '
+                              f'mi.ScalarAffineTransform3f (as bitmap), got {type(to_uv).__name__}')
+        m = to_uv.matrix
+        values = [float(m[i][j]) for i in range(3) for j in range(3)]
+        if not all(math.isfinite(x) for x in values) or values[6:] != [0.0, 0.0, 1.0]:
+            raise PluginError(f'{self.NAME}: parameter "to_uv": expected a finite affine 2D '
+                              f'transform (last row 0, 0, 1), got the matrix {values}')
+        self.mapping = self.mapping.with_to_uv(to_uv)
+        self.describe('mapping', self.mapping.describe())
+
+    def _position_sampler(self) -> PositionSampler:
+        sampler = self._sampler
+        if sampler is None:
+            with self._sampler_lock:
+                if self._sampler is None:
+                    self._sampler = self._build_position_sampler()
+                sampler = self._sampler
+        return sampler
+
+    def _build_position_sampler(self) -> PositionSampler:
+        axes, why = uv_axes(self.mapping, self.wrap)
+        if axes is None:
+            mi.Log(mi.LogLevel.Warn,
+                   f'{self.NAME}: parameters "mapping"/"to_uv"/"uscale"/"vscale"/"udelta"/'
+                   f'"vdelta": position sampling (an area emitter\'s or projector\'s radiance) '
+                   f'is not proportional to the texture with {why}; positions are sampled '
+                   f'uniformly in uv instead (unbiased, noisier)')
+            return PositionSampler(None, None)
+        # the texels as the user's tensor holds them (evaluated: reading them is allowed while
+        # Mitsuba traces a kernel, which is when an emitter first asks)
+        texels = dr.detach(self.data).numpy()
+        weights = texel_weights(texels, self._scale_value if self.invert else 1.0, self.invert)
+        return PositionSampler(TextureSpaceSampler(weights, self.filter_name == 'point',
+                                                   self.wrap), axes)
+
+    def sample_position(self, sample, active=True):
+        """A uv position with density ∝ the texture's (zero-footprint) value, and that density
+        per unit uv area (see :mod:`mitsuba_pbrt_tex.sampling`)."""
+        return self._position_sampler().sample(mi.Point2f(sample), mi.Bool(active))
+
+    def pdf_position(self, p, active=True):
+        return self._position_sampler().pdf(mi.Point2f(p), mi.Bool(active))
+
+    def sample_spectrum(self, si, sample, active=True):
+        """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as
+        ``bitmap`` (light tracing and emitters' ``sample_ray`` call this)."""
+        return type(si.wavelengths)(), self.eval(si, active)
+
+    def pdf_spectrum(self, si, active=True):
+        """RGB and mono variants: no wavelengths are sampled, so the density is empty
+        (``bitmap`` raises NotImplementedError here)."""
+        return type(si.wavelengths)()

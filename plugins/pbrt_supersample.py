@@ -18,7 +18,6 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.differentials import sanitize_partial
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
 
 
@@ -39,11 +38,9 @@ class Plugin(PbrtTexture):
     def evaluate(self, si, kind, active):
         n = self.n
         tex = self._nested['texture']
-        du_dx, dv_dx = sanitize_partial(si.duv_dx.x), sanitize_partial(si.duv_dx.y)
-        du_dy, dv_dy = sanitize_partial(si.duv_dy.x), sanitize_partial(si.duv_dy.y)
-        duv_dx, duv_dy = mi.Vector2f(du_dx, dv_dx), mi.Vector2f(du_dy, dv_dy)
-        dp_dx = si.dp_du * du_dx + si.dp_dv * dv_dx
-        dp_dy = si.dp_du * du_dy + si.dp_dv * dv_dy
+        ctx = self.context(si)          # sanitized partials; empty fields of a bare si are 0
+        duv_dx, duv_dy = mi.Vector2f(ctx.dudx, ctx.dvdx), mi.Vector2f(ctx.dudy, ctx.dvdy)
+        dp_dx, dp_dy, uv, p = ctx.dpdx, ctx.dpdy, ctx.uv, ctx.p
 
         def cond(k, acc):
             return k < n * n
@@ -52,8 +49,8 @@ class Plugin(PbrtTexture):
             a = (mi.Float(k % n) + 0.5) / n - 0.5
             b = (mi.Float(k // n) + 0.5) / n - 0.5
             sub = mi.SurfaceInteraction3f(si)
-            sub.uv = si.uv + a * duv_dx + b * duv_dy
-            sub.p = si.p + a * dp_dx + b * dp_dy
+            sub.uv = uv + a * duv_dx + b * duv_dy
+            sub.p = p + a * dp_dx + b * dp_dy
             sub.duv_dx = duv_dx / n
             sub.duv_dy = duv_dy / n
             return k + 1, acc + kind.nested(tex, sub, active)
