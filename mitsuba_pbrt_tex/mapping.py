@@ -82,6 +82,19 @@ class TexCoord3D:
     dpdy: object
 
 
+#: :func:`finite_st` clamps texture coordinates to this magnitude (pbrt-v4's clamp of the partials)
+ST_LIMIT = 1e8
+
+
+def finite_st(st):
+    """(s, t) for textures that use the coordinates as values (``pbrt_bilerp``, ``pbrt_uv``):
+    NaN → 0 and clamped to ±ST_LIMIT (±inf → ±1e8), so the result is finite (NaN/inf uv come
+    from meshes with bad ``vt`` entries; image lookups sanitise their own coordinates)."""
+    def one(x):
+        return dr.clip(dr.select(dr.isnan(x), 0.0, x), -ST_LIMIT, ST_LIMIT)
+    return mi.Point2f(one(st.x), one(st.y))
+
+
 def _safe_div(a, b):
     return dr.select(b != 0, a / b, 0.0)
 
@@ -246,7 +259,7 @@ def mapping_2d(p: Params, *, allow_to_uv: bool = True):
         to_uv = p.transform('to_uv') if allow_to_uv else None
         return UVMapping(p.float('uscale', 1.0), p.float('vscale', 1.0),
                          p.float('udelta', 0.0), p.float('vdelta', 0.0), to_uv)
-    to_world = p.transform('to_world')
+    to_world = p.transform('to_world', invertible=True)
     if kind == 'spherical':
         return SphericalMapping(to_world)
     if kind == 'cylindrical':
@@ -256,4 +269,4 @@ def mapping_2d(p: Params, *, allow_to_uv: bool = True):
 
 
 def mapping_3d(p: Params) -> PointTransformMapping:
-    return PointTransformMapping(p.transform('to_world'))
+    return PointTransformMapping(p.transform('to_world', invertible=True))

@@ -19,6 +19,9 @@ from .texture import PbrtTexture
 
 NOISE_AAMODES = ('clamp', 'none')
 
+#: roughness^octaves at most this: the octave weights (and their sums) stay finite in float32
+MAX_OCTAVE_WEIGHT = 1e30
+
 
 class NoiseTexture(PbrtTexture):
     #: which of the noise parameters the texture has (octaves/roughness defaults, or None)
@@ -29,6 +32,14 @@ class NoiseTexture(PbrtTexture):
         self.mapping = mapping_3d(p)
         self.octaves = p.int('octaves', self.OCTAVES, lo=0, hi=30) if self.OCTAVES else None
         self.roughness = p.float('roughness', self.ROUGHNESS, lo=0.0) if self.ROUGHNESS else None
+        if self.roughness is not None and self.octaves and \
+                self.roughness ** self.octaves > MAX_OCTAVE_WEIGHT:
+            largest = MAX_OCTAVE_WEIGHT ** (1.0 / self.octaves)
+            raise p.error('roughness', f'{self.roughness:g} with {self.octaves} octaves weights '
+                                       f'the last octave by roughness^octaves = '
+                                       f'{self.roughness ** self.octaves:.3g}, which overflows '
+                                       f'float32 sums; accepted for {self.octaves} octaves: '
+                                       f'roughness <= {largest:.6g}')
         self.antialias = p.enum('aamode', 'clamp', NOISE_AAMODES) == 'clamp'
         self.configure_more(p)
         for name in ('octaves', 'roughness'):

@@ -24,7 +24,7 @@ class Plugin(PbrtTexture):
         self.nested_texture(p, 'tex1', 0.0)
         self.nested_texture(p, 'tex2', 1.0)
         d = p.vector('dir', (0, 1, 0))
-        to_world = p.transform('to_world')
+        to_world = p.transform('to_world', invertible=True)
         if to_world is not None:
             d = to_world @ d
         if dr.norm(d) == 0:

@@ -22,7 +22,7 @@ class Plugin(PbrtTexture):
     def configure(self, p):
         self.nested_texture(p, 'tex1', 0.0)
         self.nested_texture(p, 'tex2', 1.0)
-        self.nested_texture(p, 'amount', 0.5)
+        self.nested_texture(p, 'amount', 0.5, float_only=True)
 
     def evaluate(self, si, kind, active):
         amount = self.nested_eval('amount', si, FLOAT, active)

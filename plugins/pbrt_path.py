@@ -44,6 +44,9 @@ from mitsuba_pbrt_tex import raydiff, variants
 from mitsuba_pbrt_tex.params import Params
 from mitsuba_pbrt_tex.texture import uses_differentials
 
+#: depths are UInt32 in the loop and int32 in Mitsuba's C++ (-1 means unbounded)
+MAX_DEPTH = 2**31 - 1
+
 AOV_CHANNELS = {'duv_dx': ('duv_dx.u', 'duv_dx.v'), 'duv_dy': ('duv_dy.u', 'duv_dy.v')}
 
 
@@ -63,15 +66,16 @@ class Plugin:
         """Validate what Mitsuba's base class reads itself, with our error messages."""
         variants.require_supported(Plugin.NAME)
         p = Params(Plugin.NAME, props)
-        p.int('max_depth', 6, lo=-1)
-        p.int('rr_depth', 5, lo=1)
+        p.int('max_depth', 6, lo=-1, hi=MAX_DEPTH)
+        p.int('rr_depth', 5, lo=1, hi=MAX_DEPTH)
+        p.bool('hide_emitters', False)
 
     def setup(self, props):
         variants.require_supported(self.NAME)
         p = Params(self.NAME, props)
-        max_depth = p.int('max_depth', 6, lo=-1)
+        max_depth = p.int('max_depth', 6, lo=-1, hi=MAX_DEPTH)
         self.max_depth = 0xffffffff if max_depth == -1 else max_depth
-        self.rr_depth = p.int('rr_depth', 5, lo=1)
+        self.rr_depth = p.int('rr_depth', 5, lo=1, hi=MAX_DEPTH)
         self.hide_emitters = p.bool('hide_emitters', False)
         self.texture_differentials = p.bool('texture_differentials', True)
         self.spp_mode = self._spp_mode(p)

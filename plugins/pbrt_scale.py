@@ -20,7 +20,7 @@ class Plugin(PbrtTexture):
 
     def configure(self, p):
         self.nested_texture(p, 'tex', 1.0)
-        self.nested_texture(p, 'scale', 1.0)
+        self.nested_texture(p, 'scale', 1.0, float_only=True)
 
     def evaluate(self, si, kind, active):
         sc = self.nested_eval('scale', si, FLOAT, active)
