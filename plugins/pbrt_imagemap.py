@@ -169,6 +169,10 @@ class Plugin(PbrtTexture):
                                   f'{type(value).__name__}' + (f' of shape {tuple(shape)}'
                                                                if shape is not None else ''))
         dr.eval(value)      # a lazy tensor from another thread must not be extended on this one
+        return self._finite_texels(value)
+
+    def _finite_texels(self, value):
+        """``value`` with non-finite texels replaced by 0 (with a warning giving their count)."""
         bad = int(dr.count(~dr.isfinite(value.array))[0])
         if bad:
             value = mi.TensorXf(dr.select(dr.isfinite(value.array), value.array, 0), value.shape)
@@ -251,6 +255,7 @@ class Plugin(PbrtTexture):
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
+        self.data = self._finite_texels(t)       # as at construction: NaN/inf texels → 0
         had_levels = self.pyramid.built
         self._shared = None
         self.pyramid = Pyramid(self.data).prepare()

@@ -21,6 +21,20 @@ import mitsuba as mi
 from mitsuba_pbrt_tex.differentials import sanitize_partial
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
 
+#: 256 x 256 lookups per evaluation at most (the loop's counter and n² must stay far inside
+#: UInt32; more is never useful for one lookup)
+MAX_SAMPLES = 65536
+
+#: The sub-samples spread over at most this many texture units per differential: Mitsuba's
+#: ``bitmap`` is undefined where uv·resolution overflows an int32 (it returned NaN and 4.6e11
+#: around uv ≈ 1e8), and a footprint of 1024 units already averages over 1024 periods of any
+#: repeated texture.
+MAX_FOOTPRINT = 1024.0
+
+
+def _footprint(x):
+    return dr.clip(sanitize_partial(x), -MAX_FOOTPRINT, MAX_FOOTPRINT)
+
 
 class Plugin(PbrtTexture):
     NAME = 'pbrt_supersample'
@@ -29,7 +43,7 @@ class Plugin(PbrtTexture):
         if not p.has('texture'):
             raise p.error('texture', 'is required (the texture to supersample)')
         self.nested_texture(p, 'texture', 0.0)
-        self.samples = p.int('samples', 16, lo=1)
+        self.samples = p.int('samples', 16, lo=1, hi=MAX_SAMPLES)
         self.n = int(round(math.sqrt(self.samples)))
         if self.n * self.n != self.samples:
             raise p.error('samples', f'must be a perfect square (1, 4, 9, 16, 25, ...), got '
@@ -39,8 +53,8 @@ class Plugin(PbrtTexture):
     def evaluate(self, si, kind, active):
         n = self.n
         tex = self._nested['texture']
-        du_dx, dv_dx = sanitize_partial(si.duv_dx.x), sanitize_partial(si.duv_dx.y)
-        du_dy, dv_dy = sanitize_partial(si.duv_dy.x), sanitize_partial(si.duv_dy.y)
+        du_dx, dv_dx = _footprint(si.duv_dx.x), _footprint(si.duv_dx.y)
+        du_dy, dv_dy = _footprint(si.duv_dy.x), _footprint(si.duv_dy.y)
         duv_dx, duv_dy = mi.Vector2f(du_dx, dv_dx), mi.Vector2f(du_dy, dv_dy)
         dp_dx = si.dp_du * du_dx + si.dp_dv * dv_dx
         dp_dy = si.dp_du * du_dy + si.dp_dv * dv_dy

@@ -10,7 +10,7 @@ RGB ``(s - floor(s), t - floor(t), 0)``; ``eval_1`` is its luminance.
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.mapping import mapping_2d
+from mitsuba_pbrt_tex.mapping import finite_st, mapping_2d
 from mitsuba_pbrt_tex.texture import PbrtTexture
 
 
@@ -22,7 +22,7 @@ class Plugin(PbrtTexture):
         self.describe('mapping', self.mapping.describe())
 
     def evaluate(self, si, kind, active):
-        st = self.mapping.map(self.context(si)).st
+        st = finite_st(self.mapping.map(self.context(si)).st)
         return kind.from_rgb(mi.Color3f(st.x - dr.floor(st.x), st.y - dr.floor(st.y), 0))
 
     def mean(self):
