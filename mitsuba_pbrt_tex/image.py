@@ -22,7 +22,8 @@ images are linear by definition, as in pbrt-v4):
 Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
 
 Non-finite texels are replaced by 0 with a warning that gives their count.
-Decoded files are cached as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
+Decoded files are cached, while a texture uses them (weakly: the last texture to let go of a file's
+texels — deleted, or given new ``data`` — frees them; nothing accumulates over reloads), as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
 path, modification time, size, encoding, variant): Mitsuba constructs plugins on worker threads
 and merges identical ones, so several textures may ask for the same file at once; the cache reads
 each file once under a per-key lock (the work under it — file decoding in numpy, one host copy
@@ -34,9 +35,11 @@ averages texels inside the image; see :mod:`mitsuba_pbrt_tex.mipmap`).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import threading
+import weakref
 from dataclasses import dataclass
 
 import mitsuba as mi
@@ -135,6 +138,13 @@ def decode_integer(raw: np.ndarray, encoding: Encoding) -> np.ndarray:
 def _read_exr(path: str) -> np.ndarray:
     import OpenEXR
     try:
+        # interleaved first: RGB(A) comes as one (H, W, 3|4) array, without the copy that
+        # stacking separate planes costs (the image's size again, at the peak of a load)
+        with OpenEXR.File(path) as f:
+            channels = {name: ch.pixels for name, ch in f.channels().items()}
+        for name in ('RGB', 'RGBA'):
+            if name in channels:
+                return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)
         with OpenEXR.File(path, separate_channels=True) as f:
             channels = {name: ch.pixels for name, ch in f.channels().items()}
     except Exception as e:  # the OpenEXR package raises plain exceptions for corrupt files
@@ -217,7 +227,43 @@ class SharedImage:
     nonfinite: int
 
 
-image_cache = BuildOnceCache()
+def _pack(key, shared: SharedImage, forget):
+    """Cache entries hold the pyramid weakly: it lives as long as a texture holds it."""
+    return (weakref.ref(shared.pyramid, lambda _: forget()), shared.encoding, shared.bit_depth,
+            shared.nonfinite)
+
+
+def _unpack(stored):
+    pyramid = stored[0]()
+    return None if pyramid is None else SharedImage(pyramid, *stored[1:])
+
+
+image_cache = BuildOnceCache(_pack, _unpack)
+
+# ---------------------------------------------------------------------------------- files read
+_recorders_lock = threading.Lock()
+_recorders: list[set] = []
+
+
+@contextlib.contextmanager
+def files_read():
+    """Collect the real paths of the image files textures read (cached or not) inside the
+    ``with`` block, from any thread: ``python -m mitsuba_pbrt_tex render`` refuses outputs
+    that would overwrite one of them."""
+    found: set[str] = set()
+    with _recorders_lock:
+        _recorders.append(found)
+    try:
+        yield found
+    finally:
+        with _recorders_lock:
+            _recorders.remove(found)
+
+
+def _note_read(path: str) -> None:
+    with _recorders_lock:
+        for found in _recorders:
+            found.add(os.path.realpath(path))
 
 
 def file_key(path: str) -> tuple:
@@ -231,6 +277,7 @@ def load_image(path: str, encoding: Encoding | None) -> SharedImage:
     variant; the key includes the modification time, so edited files are re-read)."""
     if not os.path.isfile(path):
         raise ImageError(f'file "{path}" does not exist')
+    _note_read(path)
     key = (file_key(path), None if encoding is None else str(encoding), mi.variant())
 
     def build():
