@@ -71,6 +71,8 @@ def _bench(args) -> int:
         from .bench.pyramid import main as run
     elif args.what == 'integrator':
         from .bench.integrator import main as run
+    elif args.what == 'memory':
+        from .bench.memory import main as run
     else:  # pragma: no cover - argparse restricts the choices
         raise ValueError(args.what)
     return run(args.rest)
@@ -109,8 +111,8 @@ def parser() -> argparse.ArgumentParser:
     i.set_defaults(func=_info)
 
     b = sub.add_parser('bench', help='benchmarks: lookups, render (speed vs error), pyramid, '
-                                     'integrator')
-    b.add_argument('what', choices=['lookups', 'render', 'pyramid', 'integrator'])
+                                     'integrator, memory')
+    b.add_argument('what', choices=['lookups', 'render', 'pyramid', 'integrator', 'memory'])
     b.add_argument('rest', nargs=argparse.REMAINDER, help='options of that benchmark (--help)')
     b.set_defaults(func=_bench)
 

@@ -266,6 +266,21 @@ def _note_read(path: str) -> None:
             found.add(os.path.realpath(path))
 
 
+#: A pyramid at least this large gives the memory its build used back to the system afterwards.
+RELEASE_BYTES = 32 * 2**20
+
+
+def release_build_temporaries(pyramid: Pyramid) -> None:
+    """After building a large pyramid: wait for the build's kernels and flush Dr.Jit's
+    allocation cache, which would otherwise keep the build's temporaries (the RGBA copy that the
+    levels' buffer replaces, the half-downsampled levels: 1.4× the image for RGB) resident until
+    something reuses them."""
+    if pyramid.nbytes() >= RELEASE_BYTES:
+        import drjit as dr
+        dr.sync_thread()
+        dr.flush_malloc_cache()
+
+
 def file_key(path: str) -> tuple:
     real = os.path.realpath(path)
     st = os.stat(real)

@@ -64,7 +64,7 @@ import mitsuba as mi
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
-                                    parse_encoding)
+                                    parse_encoding, release_build_temporaries)
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid
 from mitsuba_pbrt_tex.params import PluginError
@@ -189,6 +189,7 @@ class Plugin(PbrtTexture):
             self.pyramid.share_from(self._shared, levels=True)
         else:
             self.pyramid.build()
+        release_build_temporaries(self.pyramid)
 
     def _sharing(self) -> bool:
         """Does this texture still hold the shared (cached) texels of its file?"""
