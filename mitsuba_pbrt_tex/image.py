@@ -267,7 +267,7 @@ def _note_read(path: str) -> None:
 
 
 #: A pyramid at least this large gives the memory its build used back to the system afterwards.
-RELEASE_BYTES = 32 * 2**20
+RELEASE_BYTES = 16 * 2**20
 
 
 def release_build_temporaries(pyramid: Pyramid) -> None:
