@@ -37,13 +37,13 @@ error):
 | udelta, vdelta | float | 0 | `uv` and `planar`: offset added to s and t | no |
 | to_uv | transform | identity | `uv`: Mitsuba-style 2D transform applied to (u, v) first | no |
 | v1, v2 | vector | (1,0,0), (0,1,0) | `planar`: s = udelta + v1·p, t = vdelta + v2·p (texture space) | no |
-| to_world | transform | identity | `spherical`, `cylindrical`, `planar`: texture space → world | no |
+| to_world | transform | identity | `spherical`, `cylindrical`, `planar`: texture space → world; invertible (singular values of its 3×3 part ≥ 1e-9 and ≥ the largest / 1e7) | no |
 
 3D mapping parameters (solid textures):
 
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
-| to_world | transform | identity | texture space → world; lookups use p in texture space | no |
+| to_world | transform | identity | texture space → world; lookups use p in texture space; invertible as above | no |
 """
 
 from __future__ import annotations

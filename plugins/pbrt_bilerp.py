@@ -9,7 +9,8 @@
 | (2D mapping) | | | mapping parameters, see the mapping table | no |
 
 ``(1-s)(1-t)·v00 + (1-s)t·v01 + s(1-t)·v10 + st·v11``; no wrapping, so it extrapolates outside
-[0,1]² (as pbrt).
+[0,1]² (as pbrt). NaN coordinates count as 0 and s, t are clamped to ±1e8 (pbrt gives NaN/inf for
+NaN/inf/1e30 uv, e.g. from an OBJ's bad ``vt`` entries), so the value is always finite.
 """
 
 import mitsuba as mi

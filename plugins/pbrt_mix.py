@@ -4,7 +4,7 @@
 |---|---|---|---|---|
 | tex1 | float, rgb, texture | 0 | the value where amount = 0 | yes |
 | tex2 | float, rgb, texture | 1 | the value where amount = 1 | yes |
-| amount | float, texture | 0.5 | the blend weight (a float texture; not clamped) | yes |
+| amount | float, texture | 0.5 | the blend weight (a float texture, so an rgb value is refused; not clamped) | yes |
 
 ``(1 - amount)·tex1 + amount·tex2``; like pbrt-v4, ``tex1`` is not evaluated where amount = 1 and
 ``tex2`` not where amount = 0.

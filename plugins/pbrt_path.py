@@ -9,8 +9,8 @@ hit before its BSDF is evaluated or sampled.
 
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
-| max_depth | integer | 6 | longest path depth (-1: unbounded) | no |
-| rr_depth | integer | 5 | depth at which Russian roulette starts | no |
+| max_depth | integer | 6 | longest path depth (-1: unbounded; at most 2^31 - 1) | no |
+| rr_depth | integer | 5 | depth at which Russian roulette starts (1 to 2^31 - 1) | no |
 | hide_emitters | boolean | false | hide directly visible emitters | no |
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |

@@ -3,14 +3,15 @@
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
 | texture | texture | — | the texture to antialias (ours or any Mitsuba texture) | yes |
-| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata) | no |
+| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata), at most 65536; they spread over at most 1024 texture units per differential | no |
 
 The footprint is the parallelogram spanned by the texture differentials: with offsets
 ``(a, b) ∈ [-1/2, 1/2]²`` the wrapped texture is evaluated at ``uv + a·duv/dx + b·duv/dy`` and
 ``p + a·dp/dx + b·dp/dy`` at the centre of each of the n×n strata, with differentials shrunk to
 the stratum (``duv/n``), and the results are averaged — a box filter over the pixel, computed by
 the midpoint rule. Deterministic; with zero differentials (Mitsuba's integrators) it equals the
-wrapped texture.
+wrapped texture. Each differential component is limited to ±1024 texture units (non-finite ones
+count as 0), so the offsets stay where nested textures such as Mitsuba's ``bitmap`` are defined.
 """
 
 import math

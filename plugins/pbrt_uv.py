@@ -4,7 +4,8 @@
 |---|---|---|---|---|
 | (2D mapping) | | | mapping parameters, see the mapping table | no |
 
-RGB ``(s - floor(s), t - floor(t), 0)``; ``eval_1`` is its luminance.
+RGB ``(s - floor(s), t - floor(t), 0)``; ``eval_1`` is its luminance. NaN coordinates count as 0
+and s, t are clamped to ±1e8 (so inf gives 0, not NaN).
 """
 
 import drjit as dr
