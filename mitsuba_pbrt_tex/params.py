@@ -239,7 +239,8 @@ class Params:
         if key is None:
             return self.props.get_unbounded_texture(name, float(default))
         kind = self._kind(key)
-        if float_only and kind in ('Color', 'Spectrum'):
+        if float_only and (kind == 'Color' or (kind == 'Spectrum'
+                                               and not self.props[key].is_uniform())):
             raise self.error(key, f'expected a float or a texture, got {_value_text(self.props, key)}'
                                   f'; this parameter is a float texture (an rgb or spectrum value '
                                   f'would be used as its grey mean)')

@@ -25,6 +25,8 @@ class RenderError(RuntimeError):
 
 # ------------------------------------------------------------------------------ scene inputs
 _VAR_RE = re.compile(r'\$([A-Za-z_][A-Za-z0-9_]*)')
+_NUMBERS_RE = re.compile(r'^[-+0-9.eE,\s]*$')          # "0.5", "0, 1, 0": not file names
+_NOT_PATHS = ('type', 'version', 'name', 'id')        # identifiers, never read as files
 
 
 def _resolver_dirs() -> list[str]:
@@ -90,9 +92,11 @@ def scene_inputs(scene_path: str) -> set[str]:
                 extra_dirs.extend(_candidates(v, [os.path.dirname(scene_path)]))
     for doc, root in roots:
         for el in root.iter():
-            for value in el.attrib.values():
+            for attr, value in el.attrib.items():
+                if attr in _NOT_PATHS:
+                    continue
                 value = subst(value).strip()
-                if not value or len(value) > 4096:
+                if not value or len(value) > 4096 or _NUMBERS_RE.match(value):
                     continue
                 for c in _candidates(value, folders(doc)):
                     if os.path.isfile(c):
