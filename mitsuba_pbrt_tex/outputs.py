@@ -26,14 +26,24 @@ def terminate_on_sigterm() -> None:
     """Turn SIGTERM into :class:`Terminated` (main thread), so temporary files are removed."""
     def handler(signum, frame):
         raise Terminated(f'terminated by signal {signum}')
-    signal.signal(signal.SIGTERM, handler)
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except ValueError:             # not the main thread: signals stay as they are
+        pass
 
 
 _umask_lock = threading.Lock()
 
 
 def _umask() -> int:
-    with _umask_lock:              # reading the umask means setting it: set it straight back
+    try:                           # Linux ≥ 4.7 reports it without changing it
+        with open('/proc/self/status') as f:
+            for line in f:
+                if line.startswith('Umask:'):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    with _umask_lock:              # elsewhere reading the umask means setting it: set it back
         mask = os.umask(0o022)
         os.umask(mask)
     return mask

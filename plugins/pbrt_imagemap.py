@@ -235,7 +235,9 @@ class Plugin(PbrtTexture):
             values = base * self.scale
         if self.invert:
             values = dr.maximum(0, 1 - values)
-        return dr.mean(values)
+        # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
+        # (3.4e38) must not overflow the sum of up to 2^40 texels
+        return dr.mean(values * 2.0**-40) * 2.0**40
 
     def resolution(self):
         return mi.ScalarVector2i(self.pyramid.width, self.pyramid.height)

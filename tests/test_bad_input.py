@@ -135,6 +135,7 @@ ACCEPTED = [
     ('pbrt_path', {'max_depth': 2**31 - 1, 'hide_emitters': True}),
     ('pbrt_path', {'max_depth': -1}),
     ('pbrt_mix', {'amount': {'type': 'pbrt_uv'}}),     # a nested texture: its eval_1
+    ('pbrt_mix', '<spectrum name="amount" value="0.25"/>'),   # a uniform spectrum is a float
 ]
 
 
@@ -250,6 +251,8 @@ def test_texels_near_float32_max_stay_finite(filt):
     # normalised weights sum to 1 within float32 rounding (a few ulps)
     np.testing.assert_allclose(got, value, rtol=1e-6)
     assert np.isfinite(np.array(tex.pyramid.levels.buffer)).all()
+    # the mean (plastic's sampling weight) too: a float32 sum of 256 such texels overflowed
+    np.testing.assert_allclose(A(tex.mean()), value, rtol=1e-6)
 
 
 def test_ewa_on_a_1x1_image_returns_its_texel_at_any_footprint():
