@@ -22,10 +22,11 @@ images are linear by definition, as in pbrt-v4):
 Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
 
 Non-finite texels are replaced by 0 with a warning that gives their count.
-Decoded files are cached, while a texture uses them (weakly: the last texture to let go of a file's
-texels — deleted, or given new ``data`` — frees them; nothing accumulates over reloads), as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
-path, modification time, size, encoding, variant): Mitsuba constructs plugins on worker threads
-and merges identical ones, so several textures may ask for the same file at once; the cache reads
+Decoded files are cached as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
+path, modification time, size, encoding, variant), weakly: the last texture to let go of a file's
+texels (deleted, or given new ``data``) frees them, so nothing accumulates over reloads.
+Mitsuba constructs plugins on worker threads and merges identical ones, so several textures may
+ask for the same file at once; the cache reads
 each file once under a per-key lock (the work under it — file decoding in numpy, one host copy
 into a Dr.Jit array — launches no kernel, so a waiting worker cannot starve it), and the MIP
 levels are built once on first request (see :meth:`~mitsuba_pbrt_tex.mipmap.Pyramid.build`). The
