@@ -126,6 +126,36 @@ def test_bad_parameter_is_refused_with_a_clear_message(name, params, fragments):
         assert '"dir"' not in message
 
 
+def _every_float_parameter():
+    """(plugin, parameter) for every parameter whose documented type includes float (the
+    docstring tables, the same source as ``info`` and the README)."""
+    from mitsuba_pbrt_tex import docs
+    from mitsuba_pbrt_tex.registry import PLUGINS
+    return [(name, param) for name in PLUGINS for row in docs.plugin_rows(name)
+            if 'float' in row.type for param in row.names()]
+
+
+# what a plugin needs besides the parameter under test
+_REQUIRED = {'pbrt_imagemap': {'data': ONE_TEXEL}, 'pbrt_supersample': {'texture': 0.5}}
+
+
+@pytest.mark.parametrize('value, fragment', [(1e39, "float32's range"), (-3.5e38, "float32's range"),
+                                             (float('nan'), 'must be finite'),
+                                             (float('inf'), 'must be finite')],
+                         ids=['1e39', '-3.5e38', 'nan', 'inf'])
+def test_every_float_parameter_refuses_non_float32_values(value, fragment):
+    """1e39 passed the finite check and became inf in float32; NaN/inf were refused already.
+    Every documented float parameter of every plugin, from its table."""
+    cases = _every_float_parameter()
+    assert len(cases) >= 30
+    for name, param in cases:
+        with pytest.raises(RuntimeError) as e:
+            _load(name, {**_REQUIRED.get(name, {}), param: value})
+        message = str(e.value)
+        assert f'{name}: parameter "{param}"' in message and fragment in message, \
+            (name, param, message[-300:])
+
+
 ACCEPTED = [
     ('pbrt_constant', {'value': 3e38}),
     ('pbrt_uv', '<string name="mapping" value="planar"/>' + scale_xml('1e-3')),
