@@ -247,7 +247,8 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     size = sensor.film().crop_size()
     pixels = int(size[0]) * int(size[1])
     if per_pass * pixels >= 2**32:
-        raise RenderError(f'--spp {total} is too many for one image of {size[0]}x{size[1]}: a '
+        where = '--spp' if spp is not None else "the scene's sample_count"
+        raise RenderError(f'{where} {total} is too many for one image of {size[0]}x{size[1]}: a '
                           f'pass of {per_pass} samples per pixel needs {per_pass * pixels} '
                           f'samples at once, and Dr.Jit renders at most 2^32 - 1')
     if hasattr(integrator, 'set_total_spp'):
