@@ -136,6 +136,19 @@ def main(argv=None) -> int:
     ap.add_argument('--size', type=int, default=2048, help='image side in pixels (default 2048; '
                     'the issue-13 measurement used 8192: 768 MiB, peaks near 3 GiB)')
     ap.add_argument('--reloads', type=int, default=5)
+    ap.add_argument('--out', default=None, help='also write the report to this Markdown file')
     args = ap.parse_args(argv)
-    run(args.size, args.reloads)
+    lines = []
+
+    def out(line):
+        print(line, flush=True)
+        lines.append(line)
+
+    run(args.size, args.reloads, out=out)
+    if args.out:
+        import platform
+        with open(args.out, 'w', encoding='utf-8') as f:
+            f.write(f'# bench memory\n\n`python -m mitsuba_pbrt_tex bench memory --size {args.size}`'
+                    f' ({platform.machine()}, {os.cpu_count()} CPU threads, llvm_ad_rgb)\n\n'
+                    + '\n'.join(lines) + '\n')
     return 0
