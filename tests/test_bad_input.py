@@ -552,3 +552,33 @@ def test_ewa_build_gives_its_temporaries_back(tmp_path):
     assert released, r.stderr[-2000:]
     # small allocations come and go; a leftover build temporary would be ≥ 4 MiB
     assert released[0] < 0.1 * img.nbytes, released[0] / img.nbytes
+
+
+PARALLEL_CHILD = r'''
+import sys
+import mitsuba as mi, mitsuba_pbrt_tex as mpt
+mi.set_variant('llvm_ad_rgb'); mpt.register()
+paths = sys.argv[1:]
+shapes = {f's{i}': {'type': 'sphere', 'center': [i, 0, 0], 'radius': 0.3,
+                    'bsdf': {'type': 'diffuse', 'reflectance': {
+                        'type': 'pbrt_imagemap', 'filename': paths[i % len(paths)],
+                        'filter': 'ewa', 'uscale': float(1 + i // len(paths))}}}
+          for i in range(2 * len(paths))}
+scene = mi.load_dict({'type': 'scene', **shapes}, parallel=True)
+print('LOADED', len(scene.shapes()))
+'''
+
+
+def test_parallel_load_of_large_ewa_textures_completes(tmp_path):
+    """Large builds wait for their kernels and flush Dr.Jit's allocation cache inside plugin
+    constructors, which Mitsuba runs on the worker pool that also runs the kernels: a scene of
+    such textures, loaded in parallel, must not deadlock (in a subprocess, with a timeout)."""
+    from mitsuba_pbrt_tex.outputs import write_exr
+    rng = np.random.default_rng(5)
+    paths = []
+    for i in range(3):                     # each 12 MiB: its pyramid is above RELEASE_BYTES
+        paths.append(str(tmp_path / f'big{i}.exr'))
+        write_exr(paths[-1], rng.random((1024, 1024, 3), dtype=np.float32))
+    r = subprocess.run([sys.executable, '-c', PARALLEL_CHILD, *paths], capture_output=True,
+                       text=True, timeout=300)
+    assert 'LOADED 6' in r.stdout, r.stderr[-2000:]
