@@ -71,6 +71,10 @@ def scene_inputs(scene_path: str) -> set[str]:
         for el in root.iter('default'):
             if el.get('name') is not None and el.get('value') is not None:
                 defaults.setdefault(el.get('name'), el.get('value'))
+        for el in root.iter('path'):            # <path value="..."/> extends the resolver
+            if el.get('value'):
+                extra_dirs.extend(_candidates(subst(el.get('value')),
+                                              [os.path.dirname(scene_path)]))
         for el in root.iter('include'):
             if el.get('filename'):
                 for c in _candidates(subst(el.get('filename')), folders(path)):
@@ -85,11 +89,6 @@ def scene_inputs(scene_path: str) -> set[str]:
         return extra_dirs + base + _resolver_dirs()
 
     read(scene_path)
-    for doc, root in roots:                      # <path value="..."/> extends the resolver
-        for el in root.iter('path'):
-            if el.get('value'):
-                v = subst(el.get('value'))
-                extra_dirs.extend(_candidates(v, [os.path.dirname(scene_path)]))
     for doc, root in roots:
         for el in root.iter():
             for attr, value in el.attrib.items():
