@@ -86,8 +86,15 @@ def _demo(args) -> int:
     return run(args.rest)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with usage errors as one line (instead of the usage block and the error)."""
+
+    def error(self, message):
+        self.exit(2, f'error: {message} (see: {self.prog} --help)\n')
+
+
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex',
+    ap = _Parser(prog='python -m mitsuba_pbrt_tex',
                                  description="PBRT's texture system as Mitsuba 3 plugins.")
     sub = ap.add_subparsers(dest='command', required=True)
 

@@ -441,8 +441,8 @@ def test_cli_bad_input_battery(scenes):
 
 def test_cli_spp_zero_and_cuda_without_gpu(scenes):
     r = cli('render', f'{scenes}/ok.xml', '-o', f'{scenes}/o.exr', '--spp', '0')
-    assert r.returncode == 2 and 'argument --spp: must be >= 1, got 0' in r.stderr
-    assert 'Traceback' not in r.stderr
+    _one_error_line(r.returncode, r.stderr, ['argument --spp: must be >= 1, got 0',
+                                             'python -m mitsuba_pbrt_tex render --help'])
     import drjit as dr
     if dr.has_backend(dr.JitBackend.CUDA):
         pytest.skip('this machine has a CUDA device')

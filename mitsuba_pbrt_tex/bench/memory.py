@@ -138,6 +138,8 @@ def main(argv=None) -> int:
     ap.add_argument('--reloads', type=int, default=5)
     ap.add_argument('--out', default=None, help='also write the report to this Markdown file')
     args = ap.parse_args(argv)
+    if args.size < 1 or args.reloads < 0:
+        ap.error(f'--size must be >= 1 and --reloads >= 0, got {args.size} and {args.reloads}')
     lines = []
 
     def out(line):
