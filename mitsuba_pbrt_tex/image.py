@@ -21,7 +21,9 @@ images are linear by definition, as in pbrt-v4):
 
 Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
 
-Non-finite texels are replaced by 0 with a warning that gives their count.
+Non-finite texels are replaced by 0 with a warning that gives their count, and texels beyond
+±1e38 are clamped to ±1e38 (also with a warning): filtering values near float32's maximum
+(3.4e38) would overflow.
 Decoded files are cached as :class:`~mitsuba_pbrt_tex.mipmap.Pyramid` objects keyed by (real
 path, modification time, size, encoding, variant), weakly: the last texture to let go of a file's
 texels (deleted, or given new ``data``) frees them, so nothing accumulates over reloads.
@@ -205,16 +207,35 @@ def read_image(path: str, encoding: Encoding | None) -> DecodedImage:
     return decode_bitmap(bmp, encoding, f'image file "{path}"')
 
 
+#: Texel values are clamped to ±TEXEL_LIMIT: a filter's weighted sums of values near float32's
+#: maximum (3.4e38) overflow to inf (odd-sized pyramid levels, luminance, blends of levels),
+#: while every weighted average of values within ±1e38 stays finite.
+TEXEL_LIMIT = float(np.float32(1e38))
+
+
+def warn_clamped(count: int) -> None:
+    if count:
+        mi.Log(mi.LogLevel.Warn, f'pbrt_imagemap: {count} texel value(s) beyond ±1e38 clamped to '
+                                 f'±1e38 (filtering larger values would overflow float32)')
+
+
 def finish_texels(texels: np.ndarray, encoding: Encoding, bit_depth: str) -> DecodedImage:
     texels = np.ascontiguousarray(texels, dtype=np.float32)
     if texels.ndim != 3 or texels.shape[2] not in (1, 3) or min(texels.shape[:2]) < 1:
         raise ImageError(f'image has shape {texels.shape}; expected (H, W, 1) or (H, W, 3)')
     bad = ~np.isfinite(texels)
     count = int(bad.sum())
+    del bad
     if count:
-        texels = np.where(bad, np.float32(0), texels)
+        texels = np.where(np.isfinite(texels), texels, np.float32(0))
+    if texels.size and (texels.max() > TEXEL_LIMIT or texels.min() < -TEXEL_LIMIT):
+        clamped = int(np.count_nonzero(texels > TEXEL_LIMIT)
+                      + np.count_nonzero(texels < -TEXEL_LIMIT))
+        texels = np.clip(texels, -TEXEL_LIMIT, TEXEL_LIMIT)
+        warn_clamped(clamped)
     texels.setflags(write=False)
     return DecodedImage(texels, encoding, bit_depth, count)
+
 
 
 # ---------------------------------------------------------------------------------- cache

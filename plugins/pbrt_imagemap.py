@@ -63,8 +63,8 @@ import mitsuba as mi
 
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
-from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
-                                    parse_encoding, release_build_temporaries)
+from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
+                                    parse_encoding, release_build_temporaries, warn_clamped)
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid
 from mitsuba_pbrt_tex.params import PluginError
@@ -172,12 +172,17 @@ class Plugin(PbrtTexture):
         return self._finite_texels(value)
 
     def _finite_texels(self, value):
-        """``value`` with non-finite texels replaced by 0 (with a warning giving their count)."""
-        bad = int(dr.count(~dr.isfinite(value.array))[0])
-        if bad:
-            value = mi.TensorXf(dr.select(dr.isfinite(value.array), value.array, 0), value.shape)
-            self._warn_nonfinite(bad)
-        return value
+        """``value`` with non-finite texels replaced by 0 and others clamped to ±TEXEL_LIMIT
+        (with warnings giving their counts), as for image files."""
+        x = value.array
+        if not int(dr.count(~(dr.abs(x) <= TEXEL_LIMIT))[0]):       # NaN compares false
+            return value
+        bad = int(dr.count(~dr.isfinite(x))[0])
+        big = int(dr.count(dr.isfinite(x) & (dr.abs(x) > TEXEL_LIMIT))[0])
+        x = dr.select(dr.isfinite(x), dr.clip(x, -TEXEL_LIMIT, TEXEL_LIMIT), 0)
+        self._warn_nonfinite(bad)
+        warn_clamped(big)
+        return mi.TensorXf(x, value.shape)
 
     def _warn_nonfinite(self, count):
         if count:

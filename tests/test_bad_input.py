@@ -268,21 +268,45 @@ def test_nan_texels_through_params_update_become_zero():
 
 
 @pytest.mark.parametrize('filt', ['bilinear', 'trilinear', 'ewa'])
-def test_texels_near_float32_max_stay_finite(filt):
-    """A uniform image of 3.3e38 filters to 3.3e38 (EWA sums of ~100 such texels overflowed)."""
-    value = np.float32(3.3e38)
-    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': filt,
-                        'data': tensor(np.full((16, 16, 3), value))})
+@pytest.mark.parametrize('source', ['data', 'file'])
+def test_texels_near_float32_max_stay_finite(filt, source, tmp_path):
+    """Texels beyond ±1e38 are clamped to ±1e38 (with a warning), so every weighted average the
+    filters compute stays finite: odd-sized pyramid levels, EWA sums of ~100 taps, the blend of
+    two levels, the luminance and the mean overflowed to inf/NaN for values near 3.4e38. A
+    uniform image of 3.3e38 or float32's maximum then filters to 1e38 everywhere."""
+    fmax = np.finfo(np.float32).max
+    img = np.full((9, 11, 3), fmax, np.float32)
+    img[::2] = np.float32(3.3e38)
+    tex_params = {'type': 'pbrt_imagemap', 'filter': filt}
+    if source == 'data':
+        tex_params['data'] = tensor(img)
+    else:
+        from mitsuba_pbrt_tex.outputs import write_exr
+        write_exr(str(tmp_path / 'huge.exr'), img)
+        tex_params['filename'] = str(tmp_path / 'huge.exr')
+    tex = mi.load_dict(tex_params)
     tex.prepare_differentials()
-    si = make_si([[0.3, 0.3], [0.7, 0.1], [0.5, 0.5]], duv_dx=[[0.1, 0], [0.5, 0.2], [0.02, 0]],
-                 duv_dy=[[0, 0.01], [0, 0.5], [0, 0.02]])
+    si = make_si([[0.3, 0.3], [0.7, 0.1], [0.5, 0.5], [0.2, 0.9]],
+                 duv_dx=[[0.1, 0], [0.5, 0.2], [0.02, 0], [3.0, 0]],
+                 duv_dy=[[0, 0.01], [0, 0.5], [0, 0.02], [0, 3.0]])
     got = A(tex.eval_3(si))
-    assert np.isfinite(got).all()
     # normalised weights sum to 1 within float32 rounding (a few ulps)
-    np.testing.assert_allclose(got, value, rtol=1e-6)
+    np.testing.assert_allclose(got, 1e38, rtol=1e-6)
+    np.testing.assert_allclose(A(tex.eval_1(si)), 1e38, rtol=1e-6)     # luminance
+    np.testing.assert_allclose(A(tex.mean()), 1e38, rtol=1e-6)         # plastic's weight
     assert np.isfinite(np.array(tex.pyramid.levels.buffer)).all()
-    # the mean (plastic's sampling weight) too: a float32 sum of 256 such texels overflowed
-    np.testing.assert_allclose(A(tex.mean()), value, rtol=1e-6)
+    if source == 'data':                                                # the update path too
+        p = mi.traverse(tex)
+        p['data'] = tensor(-img)
+        p.update()
+        np.testing.assert_allclose(A(tex.eval_3(si)), -1e38, rtol=1e-6)
+
+
+def test_texels_within_the_limit_are_unchanged():
+    img = np.array([[[9.9e37], [-1e38]], [[1.0], [-2.5e-30]]], np.float32)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': 'point', 'data': tensor(img)})
+    si = make_si([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
+    np.testing.assert_array_equal(A(tex.eval_1(si)), img.reshape(-1))
 
 
 def test_ewa_on_a_1x1_image_returns_its_texel_at_any_footprint():
