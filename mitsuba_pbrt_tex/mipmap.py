@@ -23,7 +23,8 @@ be recorded too.
 Memory: the buffer is at most 4/3 of its base level (RGBA for RGB); with the tensor, an RGB
 texture takes 1 + 4/3·4/3 ≈ 2.8× the tensor's memory with all levels, 1 + 4/3 ≈ 2.3× with level 0
 alone (Mitsuba's ``bitmap``: 2.3×, without a pyramid); a 1-channel texture 1 + 4/3 ≈ 2.3×, and
-1× with level 0 alone (its buffer is then the tensor's own array).
+2× with level 0 alone. The copy into the buffer also replaces non-finite texels by 0 and clamps
+the others to ±``TEXEL_LIMIT``, whatever the tensor holds (also after ``params.update()``).
 
 Non-power-of-two images
 -----------------------
@@ -70,6 +71,10 @@ import numpy as np
 from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
 FILTERS = ('point', 'bilinear', 'trilinear', 'ewa')
+#: Texel values are limited to ±TEXEL_LIMIT: a filter's weighted sums of values near float32's
+#: maximum (3.4e38) overflow to inf (odd-sized pyramid levels, luminance, blends of levels),
+#: while every weighted average of values within ±1e38 stays finite.
+TEXEL_LIMIT = float(np.float32(1e38))
 WIDTH_CONVENTIONS = {'v3': 1.0, 'v4': 2.0}
 
 
@@ -180,6 +185,9 @@ def build_pyramid(tensor: mi.TensorXf, levels: bool = True) -> Pyramid:
         raise ValueError(f'expected an (H, W, 1|3) tensor, got shape {tuple(tensor.shape)}')
     height, width, channels = (int(s) for s in tensor.shape)
     level0 = pad_rgb(tensor.array) if channels == 3 else tensor.array
+    # non-finite texels → 0, the others within ±TEXEL_LIMIT (fused into the copy; gradients pass
+    # where nothing changes)
+    level0 = dr.select(dr.isfinite(level0), dr.clip(level0, -TEXEL_LIMIT, TEXEL_LIMIT), 0)
     if levels:
         buffer, sizes, offsets = build_levels(level0, width, height, 4 if channels == 3 else 1)
     else:

@@ -85,8 +85,8 @@ import numpy as np
 
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
-from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
-                                    parse_encoding)
+from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
+                                    parse_encoding, release_build_temporaries, warn_clamped)
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, Pyramid, build_pyramid
 from mitsuba_pbrt_tex.params import PluginError
@@ -197,11 +197,20 @@ class Plugin(PbrtTexture):
                                   f'{type(value).__name__}' + (f' of shape {tuple(shape)}'
                                                                if shape is not None else ''))
         dr.eval(value)      # a lazy tensor from another thread must not be extended on this one
-        bad = int(dr.count(~dr.isfinite(value.array))[0])
-        if bad:
-            value = mi.TensorXf(dr.select(dr.isfinite(value.array), value.array, 0), value.shape)
-            self._warn_nonfinite(bad)
-        return value
+        return self._finite_texels(value)
+
+    def _finite_texels(self, value):
+        """``value`` with non-finite texels replaced by 0 and others clamped to ±TEXEL_LIMIT
+        (with warnings giving their counts), as for image files."""
+        x = value.array
+        if not int(dr.count(~(dr.abs(x) <= TEXEL_LIMIT))[0]):       # NaN compares false
+            return value
+        bad = int(dr.count(~dr.isfinite(x))[0])
+        big = int(dr.count(dr.isfinite(x) & (dr.abs(x) > TEXEL_LIMIT))[0])
+        x = dr.select(dr.isfinite(x), dr.clip(x, -TEXEL_LIMIT, TEXEL_LIMIT), 0)
+        self._warn_nonfinite(bad)
+        warn_clamped(big)
+        return mi.TensorXf(x, value.shape)
 
     def _warn_nonfinite(self, count):
         if count:
@@ -212,11 +221,13 @@ class Plugin(PbrtTexture):
         """The pyramid of ``self.data`` (every level, or level 0 alone): the file's shared one
         while the texels are still the file's, else built from the tensor — inside the AD graph
         even during a render's primal pass (which suspends gradients), so gradients enabled on
-        the tensor reach every level."""
+        the tensor reach every level. Large builds give their temporaries back."""
         if self._shared is not None:
             return self._shared.pyramid(levels)
         with dr.resume_grad():
-            return build_pyramid(self.data, levels)
+            pyramid = build_pyramid(self.data, levels)
+        release_build_temporaries(pyramid)
+        return pyramid
 
     def _make_filter(self):
         self.filter = TextureFilter(self.filter_name, self.wrap, self.max_anisotropy,
@@ -282,7 +293,9 @@ class Plugin(PbrtTexture):
         values = texels * self.scale
         if self.invert:
             values = dr.maximum(0, 1 - values)
-        return dr.mean(values)
+        # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
+        # (3.4e38) must not overflow the sum of up to 2^40 texels
+        return dr.mean(values * 2.0**-40) * 2.0**40
 
     def resolution(self):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
@@ -315,7 +328,7 @@ class Plugin(PbrtTexture):
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
-        self._warn_if_codes()
+        self._check_new_texels()
         self._shared = None
         # Texels being differentiated get every level now: forward mode propagates the input's
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
@@ -323,19 +336,25 @@ class Plugin(PbrtTexture):
         self.pyramid = self._build(self.pyramid.complete or dr.grad_enabled(self.data))
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
 
-    def _warn_if_codes(self):
-        """Warn when data written through ``params`` looks like ``bitmap``'s 8-bit codes.
+    def _check_new_texels(self):
+        """Warnings about texels written through ``params`` (the pyramid replaces non-finite
+        texels by 0 and clamps the others to ±TEXEL_LIMIT in any case, as at construction):
+        their counts, and a warning when they look like ``bitmap``'s 8-bit codes.
 
         Mitsuba's ``SceneParameters`` converts whatever is written into ``params['...data']``
         (a TensorXu8 of codes, a numpy uint8 array) to the parameter's type, TensorXf, before the
         plugin is told, so an integer tensor cannot be refused here as it is at construction.
         Texels that are all integers in [0, 255] with some above 1 are what such a write
         leaves; linear radiance can be like that too, so this warns rather than refuses. Skipped
-        for tensors with gradients (an optimiser's step), where it would cost a sync per step.
+        for tensors with gradients (an optimiser's step), where reading them back would cost a
+        synchronisation per step (and could not be recorded by ``dr.freeze``).
         """
         if dr.grad_enabled(self.data):
             return
         v = self.data.numpy()
+        finite = np.isfinite(v)
+        self._warn_nonfinite(int(v.size - np.count_nonzero(finite)))
+        warn_clamped(int(np.count_nonzero(finite & (np.abs(v) > TEXEL_LIMIT))))
         if v.size and v.max() > 1 and v.min() >= 0 and v.max() <= 255 and \
                 np.all(v == np.round(v)):
             mi.Log(mi.LogLevel.Warn,
