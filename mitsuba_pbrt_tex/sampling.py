@@ -133,7 +133,7 @@ class TextureSpaceSampler:
         idx, _, rem = self.distr.sample(sample, active)
         w, h = self.w, self.h
         if self.nearest:
-            st = mi.Point2f((mi.Float(idx.x) + rem.x) / w, (mi.Float(idx.y) + rem.y) / h)
+            st = mi.Point2f(_inside_texel(idx.x, rem.x, w), _inside_texel(idx.y, rem.y, h))
             return st, self.pdf(st, active)
         a, b = mi.Float(idx.x), mi.Float(idx.y)
         c00, c10, c01, c11 = self._corner_values(idx.x, idx.y, active)
@@ -171,6 +171,20 @@ class TextureSpaceSampler:
         fy = dr.clip((y - y0) / (y1 - y0), 0.0, 1.0)
         c00, c10, c01, c11 = self._corner_values(mi.UInt32(a), mi.UInt32(b), active)
         return dr.lerp(dr.lerp(c00, c10, fx), dr.lerp(c01, c11, fx), fy) * self.norm
+
+
+def _inside_texel(i, frac, n: int) -> mi.Float:
+    """(i + frac) / n, nudged by an ulp where float32 rounding would put it in the next or
+    previous texel (frac = 1 exactly, or large i): pdf() must find texel i there again."""
+    fi = mi.Float(i)
+    x = (fi + frac) / n
+    bits = dr.reinterpret_array(mi.UInt32, x)
+    for _ in range(2):
+        cell = dr.floor(x * n)
+        x = dr.select(cell > fi, dr.reinterpret_array(mi.Float, bits - 1),
+                      dr.select((cell < fi) & (x >= 0), dr.reinterpret_array(mi.Float, bits + 1), x))
+        bits = dr.reinterpret_array(mi.UInt32, x)
+    return x
 
 
 # ------------------------------------------------------------------------------ uv ↔ (s, t)
