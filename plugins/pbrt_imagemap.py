@@ -34,8 +34,8 @@ flips v, so images appear upright on OBJ meshes).
 
 Channels: 1-channel images give grey colours (``eval``, and ``eval_3``, where ``bitmap`` raises)
 and their value as float; RGB images give colours, and their luminance as float (``eval_1``, as
-``bitmap``). Alpha is dropped. ``invert`` clamps at 0
-like pbrt; otherwise values are not clamped (parity with ``bitmap``, negative EXR texels survive).
+``bitmap``). Alpha is dropped. ``invert`` clamps at 0 like pbrt; otherwise values are not clamped
+(parity with ``bitmap``, negative EXR texels survive).
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
 pbrt-v4 does. Under Mitsuba's own integrators the footprint is always 0 (they compute no texture
