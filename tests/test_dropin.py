@@ -561,3 +561,16 @@ def test_data_is_linear_float32_where_bitmap_holds_srgb_codes():
     codes = np.array(b, np.float64) / 255.0
     srgb = np.where(codes <= 0.04045, codes / 12.92, ((codes + 0.055) / 1.055) ** 2.4)
     np.testing.assert_allclose(np.array(o), srgb, atol=1e-6)
+
+
+def test_sample_spectrum_equals_bitmaps(rng):
+    """RGB/mono variants: sample_spectrum returns no wavelengths and the value, as bitmap's
+    (≤ 1e-6); pdf_spectrum returns no wavelengths either (bitmap raises there)."""
+    img = rng.random((5, 6, 3)).astype(np.float32)
+    b, o = mi.load_dict(bitmap_tex(img)), mi.load_dict(ours_tex(img))
+    si = make_si(rng.random((64, 2)))
+    wb, vb = b.sample_spectrum(si, dr.zeros(type(si.wavelengths)))
+    wo, vo = o.sample_spectrum(si, dr.zeros(type(si.wavelengths)))
+    assert type(wo) is type(wb) and len(wo) == len(wb) == 0
+    np.testing.assert_allclose(A(vo), A(vb), atol=1e-6)
+    assert len(o.pdf_spectrum(si)) == 0
