@@ -75,7 +75,6 @@ import threading
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
@@ -316,12 +315,12 @@ class Plugin(PbrtTexture):
         """
         if dr.grad_enabled(self.data):
             return
-        v = self.data.numpy()
-        if v.size and v.max() > 1 and v.min() >= 0 and v.max() <= 255 and \
-                np.all(v == np.round(v)):
+        v = self.data.array                 # reductions on the device: no copy to the host
+        hi, lo = float(dr.max(v)[0]), float(dr.min(v)[0])
+        if 1 < hi <= 255 and lo >= 0 and bool(dr.all(dr.round(v) == v)):
             mi.Log(mi.LogLevel.Warn,
                    f'{self.NAME}: parameter "data": the new texels are all integers in [0, 255] '
-                   f'(max {v.max():g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
+                   f'(max {hi:g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
                    f'{integer_data_message(self.data).split("; accepted: ")[1]}')
 
     # ------------------------------------------------------------------ emitters, light tracing
