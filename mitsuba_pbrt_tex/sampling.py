@@ -50,13 +50,15 @@ LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
 
 # ------------------------------------------------------------------------------ texel weights
 def texel_weights(texels: np.ndarray, scale: float, invert: bool) -> np.ndarray:
-    """(H, W) non-negative sampling weights of an (H, W, C) array of texels."""
-    v = np.asarray(texels, np.float64) * scale
+    """(H, W) non-negative float32 sampling weights of an (H, W, C) array of texels."""
+    v = np.asarray(texels, np.float32)
+    if scale != 1.0 or invert:
+        v = v * np.float32(scale)
     if invert:
-        v = np.maximum(0.0, 1.0 - v)
+        v = np.maximum(np.float32(0), np.float32(1) - v)
     v = np.abs(v)
-    w = v @ LUMINANCE if v.shape[2] == 3 else v[..., 0]
-    return np.where(np.isfinite(w), w, 0.0)
+    w = v @ LUMINANCE.astype(np.float32) if v.shape[2] == 3 else v[..., 0]
+    return np.where(np.isfinite(w), w, np.float32(0))
 
 
 def _wrap_np(x, y, w, h, mode):
@@ -85,18 +87,27 @@ def _wrap_np(x, y, w, h, mode):
     return x, y, valid
 
 
-def bilinear_np(weights: np.ndarray, xs: np.ndarray, ys: np.ndarray, wrap: str) -> np.ndarray:
-    """The bilinear lookup of ``weights`` at texel-unit positions (xs × ys grid), wrapped."""
+def corner_values(weights: np.ndarray, wrap: str) -> np.ndarray:
+    """The bilinear lookup of ``weights`` (with ``wrap`` at the edges) at the corners of the
+    sampling cells: texel-unit positions 0, 0.5, 1.5, ..., W - 0.5, W (and the same in y).
+
+    At a texel centre the lookup is the texel; on an edge it is the mean of the edge texel and
+    its wrapped neighbour (in both axes at a corner). So: pad the texels by their one-texel wrapped
+    ring, and average neighbouring pairs at the edges. Shape (H + 2, W + 2).
+    """
     h, w = weights.shape
-    px, py = xs - 0.5, ys - 0.5
-    x0, y0 = np.floor(px).astype(np.int64), np.floor(py).astype(np.int64)
-    fx, fy = px - x0, py - y0
-    out = np.zeros((len(ys), len(xs)))
-    for by, wy in ((0, 1 - fy), (1, fy)):
-        for bx, wx in ((0, 1 - fx), (1, fx)):
-            ix, iy, ok = _wrap_np((x0 + bx)[None, :], (y0 + by)[:, None], w, h, wrap)
-            out += np.where(ok, weights[iy, ix], 0.0) * wy[:, None] * wx[None, :]
-    return out
+    padded = np.empty((h + 2, w + 2), np.float32)
+    padded[1:-1, 1:-1] = weights
+    # the ring: rows -1 and H (all columns, corners included), columns -1 and W
+    xs, ys = np.arange(-1, w + 1), np.arange(-1, h + 1)
+    for rows, cols, sl in (([-1], xs, np.s_[:1, :]), ([h], xs, np.s_[-1:, :]),
+                           (ys[1:-1], [-1], np.s_[1:-1, :1]), (ys[1:-1], [w], np.s_[1:-1, -1:])):
+        ix, iy, ok = _wrap_np(np.asarray(cols)[None, :], np.asarray(rows)[:, None], w, h, wrap)
+        padded[sl] = np.where(ok, weights[iy, ix], np.float32(0))
+    cols = np.concatenate([0.5 * (padded[:, :1] + padded[:, 1:2]), padded[:, 1:-1],
+                           0.5 * (padded[:, -2:-1] + padded[:, -1:])], 1)
+    return np.concatenate([0.5 * (cols[:1] + cols[1:2]), cols[1:-1],
+                           0.5 * (cols[-2:-1] + cols[-1:])], 0)
 
 
 # ------------------------------------------------------------------------------ texture space
@@ -110,14 +121,14 @@ class TextureSpaceSampler:
             cells = weights
         else:
             # corners at the texel centres, plus the edges: 0, 0.5, 1.5, ..., W - 0.5, W
-            xs = np.concatenate([[0.0], np.arange(w) + 0.5, [float(w)]])
-            ys = np.concatenate([[0.0], np.arange(h) + 0.5, [float(h)]])
-            corners = bilinear_np(weights, xs, ys, wrap)
+            xs = np.concatenate([[0.0], np.arange(w) + 0.5, [float(w)]]).astype(np.float32)
+            ys = np.concatenate([[0.0], np.arange(h) + 0.5, [float(h)]]).astype(np.float32)
+            corners = corner_values(weights, wrap)
             area = np.diff(ys)[:, None] * np.diff(xs)[None, :]
             cells = area * 0.25 * (corners[:-1, :-1] + corners[:-1, 1:] + corners[1:, :-1]
                                    + corners[1:, 1:])
             self.corners = mi.Float(corners.ravel().astype(np.float32))
-        total = float(cells.sum())
+        total = float(cells.sum(dtype=np.float64))
         self.uniform = not (total > 0 and math.isfinite(total))
         if self.uniform:
             return
@@ -133,7 +144,7 @@ class TextureSpaceSampler:
         idx, _, rem = self.distr.sample(sample, active)
         w, h = self.w, self.h
         if self.nearest:
-            st = mi.Point2f((mi.Float(idx.x) + rem.x) / w, (mi.Float(idx.y) + rem.y) / h)
+            st = mi.Point2f(_inside_texel(idx.x, rem.x, w), _inside_texel(idx.y, rem.y, h))
             return st, self.pdf(st, active)
         a, b = mi.Float(idx.x), mi.Float(idx.y)
         c00, c10, c01, c11 = self._corner_values(idx.x, idx.y, active)
@@ -171,6 +182,20 @@ class TextureSpaceSampler:
         fy = dr.clip((y - y0) / (y1 - y0), 0.0, 1.0)
         c00, c10, c01, c11 = self._corner_values(mi.UInt32(a), mi.UInt32(b), active)
         return dr.lerp(dr.lerp(c00, c10, fx), dr.lerp(c01, c11, fx), fy) * self.norm
+
+
+def _inside_texel(i, frac, n: int) -> mi.Float:
+    """(i + frac) / n, nudged by an ulp where float32 rounding would put it in the next or
+    previous texel (frac = 1 exactly, or large i): pdf() must find texel i there again."""
+    fi = mi.Float(i)
+    x = (fi + frac) / n
+    bits = dr.reinterpret_array(mi.UInt32, x)
+    for _ in range(2):
+        cell = dr.floor(x * n)
+        x = dr.select(cell > fi, dr.reinterpret_array(mi.Float, bits - 1),
+                      dr.select((cell < fi) & (x >= 0), dr.reinterpret_array(mi.Float, bits + 1), x))
+        bits = dr.reinterpret_array(mi.UInt32, x)
+    return x
 
 
 # ------------------------------------------------------------------------------ uv ↔ (s, t)

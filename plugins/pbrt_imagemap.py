@@ -34,8 +34,8 @@ flips v, so images appear upright on OBJ meshes).
 
 Channels: 1-channel images give grey colours (``eval``, and ``eval_3``, where ``bitmap`` raises)
 and their value as float; RGB images give colours, and their luminance as float (``eval_1``, as
-``bitmap``). Alpha is dropped. ``invert`` clamps at 0
-like pbrt; otherwise values are not clamped (parity with ``bitmap``, negative EXR texels survive).
+``bitmap``). Alpha is dropped. ``invert`` clamps at 0 like pbrt; otherwise values are not clamped
+(parity with ``bitmap``, negative EXR texels survive).
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
 pbrt-v4 does. Under Mitsuba's own integrators the footprint is always 0 (they compute no texture
@@ -81,7 +81,6 @@ import threading
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
@@ -351,15 +350,18 @@ class Plugin(PbrtTexture):
         """
         if dr.grad_enabled(self.data):
             return
-        v = self.data.numpy()
-        finite = np.isfinite(v)
-        self._warn_nonfinite(int(v.size - np.count_nonzero(finite)))
-        warn_clamped(int(np.count_nonzero(finite & (np.abs(v) > TEXEL_LIMIT))))
-        if v.size and v.max() > 1 and v.min() >= 0 and v.max() <= 255 and \
-                np.all(v == np.round(v)):
+        v = self.data.array                 # reductions on the device: no copy to the host
+        finite = dr.isfinite(v)
+        counts = [dr.count(~finite), dr.count(finite & (dr.abs(v) > TEXEL_LIMIT))]
+        hi, lo = dr.max(v), dr.min(v)
+        dr.eval(counts, hi, lo)
+        self._warn_nonfinite(int(counts[0][0]))
+        warn_clamped(int(counts[1][0]))
+        hi, lo = float(hi[0]), float(lo[0])
+        if 1 < hi <= 255 and lo >= 0 and bool(dr.all(dr.round(v) == v)):
             mi.Log(mi.LogLevel.Warn,
                    f'{self.NAME}: parameter "data": the new texels are all integers in [0, 255] '
-                   f'(max {v.max():g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
+                   f'(max {hi:g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
                    f'{integer_data_message(self.data).split("; accepted: ")[1]}')
 
     # ------------------------------------------------------------------ emitters, light tracing

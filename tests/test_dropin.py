@@ -160,6 +160,32 @@ def test_sample_position_passes_mitsubas_chi2_test(filt, wrap, rng):
     assert chi2.run(), chi2.messages
 
 
+@pytest.mark.parametrize('wrap', ['repeat', 'clamp', 'mirror'])
+@pytest.mark.parametrize('filt', ['point', 'bilinear'])
+def test_sampled_pdf_equals_pdf_position_on_texel_edges(filt, wrap, rng):
+    """Samples on a regular grid that includes 0 and 1 (so points land exactly on texel edges
+    and on the far edge; a 61×43 image makes (i + frac)/W round across edges): the pdf
+    sample_position returns equals pdf_position at the returned point, which MIS relies on:
+    exactly for point (the same texel); for bilinear to 1e-4 relative (the returned density is
+    interpolated at the cell-local warped point, pdf_position re-derives that point from uv·W:
+    float32 rounding of the position times the interpolant's slope; measured ≤ 2e-5). (Mitsuba's
+    test07 of bitmap checks the same.)"""
+    g = np.linspace(0, 1, 301)
+    u, v = np.meshgrid(g, g)
+    # random float texels, and an 8-bit sRGB image (as Mitsuba's test: there the sample 1 gives
+    # the last texel with fraction 1, and repeat would wrap (W-1 + 1)/W = 1 onto texel 0)
+    codes = np.random.default_rng(3).integers(0, 256, (40, 60, 3)).astype(np.uint8)
+    codes[:, :10] = 5
+    for img in (rng.uniform(0.01, 1.0, (43, 61, 3)), codes):
+        tex = imagemap(img, filter=filt, wrap=wrap) if img.dtype != np.uint8 else \
+            mi.load_dict({'type': 'pbrt_imagemap', 'filter': filt, 'wrap': wrap,
+                          'bitmap': mi.Bitmap(img, pixel_format=mi.Bitmap.PixelFormat.RGB)})
+        uv, pdf = tex.sample_position(mi.Point2f(u.ravel(), v.ravel()))
+        assert np.all((A(uv) >= 0) & (A(uv) <= 1))
+        np.testing.assert_allclose(A(pdf), A(tex.pdf_position(uv)),
+                                   rtol=1e-4 if filt != 'point' else 0)
+
+
 # (to_uv, uscale/vscale, ...) combinations whose density is exact (see mitsuba_pbrt_tex.sampling)
 EXACT_MAPPINGS = [
     ('flip u', {'to_uv': T().translate([1, 0, 0]) @ T().scale([-1, 1, 1])}, 'clamp'),
@@ -535,3 +561,16 @@ def test_data_is_linear_float32_where_bitmap_holds_srgb_codes():
     codes = np.array(b, np.float64) / 255.0
     srgb = np.where(codes <= 0.04045, codes / 12.92, ((codes + 0.055) / 1.055) ** 2.4)
     np.testing.assert_allclose(np.array(o), srgb, atol=1e-6)
+
+
+def test_sample_spectrum_equals_bitmaps(rng):
+    """RGB/mono variants: sample_spectrum returns no wavelengths and the value, as bitmap's
+    (≤ 1e-6); pdf_spectrum returns no wavelengths either (bitmap raises there)."""
+    img = rng.random((5, 6, 3)).astype(np.float32)
+    b, o = mi.load_dict(bitmap_tex(img)), mi.load_dict(ours_tex(img))
+    si = make_si(rng.random((64, 2)))
+    wb, vb = b.sample_spectrum(si, dr.zeros(type(si.wavelengths)))
+    wo, vo = o.sample_spectrum(si, dr.zeros(type(si.wavelengths)))
+    assert type(wo) is type(wb) and len(wo) == len(wb) == 0
+    np.testing.assert_allclose(A(vo), A(vb), atol=1e-6)
+    assert len(o.pdf_spectrum(si)) == 0
