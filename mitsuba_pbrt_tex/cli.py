@@ -3,11 +3,27 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+
+#: Set this environment variable to see the Python traceback of an unexpected error.
+DEBUG_ENV = 'MITSUBA_PBRT_TEX_DEBUG'
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected a whole number, got "{text}"') from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'must be >= 1, got {value}')
+    return value
 
 
 def _render(args) -> int:
+    from .outputs import terminate_on_sigterm
     from .render import RenderError, render_file
+    terminate_on_sigterm()
     try:
         info = render_file(args.scene, args.output, spp=args.spp, variant=args.variant,
                            progress=not args.quiet)
@@ -34,8 +50,13 @@ def _info(args) -> int:
               file=sys.stderr)
         return 2
     if args.update_readme:
-        docs.update_readme(args.update_readme, args.bench_results)
-        print(f'updated {args.update_readme}')
+        try:
+            changed = docs.update_readme(args.update_readme, args.bench_results)
+        except (OSError, ValueError) as e:
+            print(f'error: {e}', file=sys.stderr)
+            return 2
+        print(f'updated {args.update_readme}' if changed else
+              f'{args.update_readme} is up to date')
         return 0
     print(docs.markdown(names) if args.markdown else docs.text(names), end='')
     return 0
@@ -50,6 +71,8 @@ def _bench(args) -> int:
         from .bench.pyramid import main as run
     elif args.what == 'integrator':
         from .bench.integrator import main as run
+    elif args.what == 'memory':
+        from .bench.memory import main as run
     else:  # pragma: no cover - argparse restricts the choices
         raise ValueError(args.what)
     return run(args.rest)
@@ -65,15 +88,23 @@ def _demo(args) -> int:
     return run(args.rest)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with usage errors as one line (instead of the usage block and the error)."""
+
+    def error(self, message):
+        self.exit(2, f'error: {message} (see: {self.prog} --help)\n')
+
+
 def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex',
+    ap = _Parser(prog='python -m mitsuba_pbrt_tex',
                                  description="PBRT's texture system as Mitsuba 3 plugins.")
     sub = ap.add_subparsers(dest='command', required=True)
 
     r = sub.add_parser('render', help='render a scene to EXR (+ tone-mapped PNG)')
     r.add_argument('scene', help='scene XML file')
     r.add_argument('-o', '--output', required=True, help='output .exr (a .png is written beside it)')
-    r.add_argument('--spp', type=int, default=None, help='samples per pixel (default: the scene\'s)')
+    r.add_argument('--spp', type=_positive_int, default=None,
+                   help='samples per pixel, >= 1 (default: the scene\'s)')
     r.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant (default llvm_ad_rgb)')
     r.add_argument('-q', '--quiet', action='store_true', help='no progress display')
     r.set_defaults(func=_render)
@@ -89,8 +120,8 @@ def parser() -> argparse.ArgumentParser:
     i.set_defaults(func=_info)
 
     b = sub.add_parser('bench', help='benchmarks: lookups, render (speed vs error), pyramid, '
-                                     'integrator')
-    b.add_argument('what', choices=['lookups', 'render', 'pyramid', 'integrator'])
+                                     'integrator, memory')
+    b.add_argument('what', choices=['lookups', 'render', 'pyramid', 'integrator', 'memory'])
     b.add_argument('rest', nargs=argparse.REMAINDER, help='options of that benchmark (--help)')
     b.set_defaults(func=_bench)
 
@@ -103,4 +134,18 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    return args.func(args)
+    from .outputs import Terminated
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print('interrupted', file=sys.stderr)
+        return 130
+    except Terminated:
+        print('terminated (SIGTERM); no partial output left behind', file=sys.stderr)
+        return 143
+    except Exception as e:          # a bug, not a user error: one line, traceback on request
+        if os.environ.get(DEBUG_ENV):
+            raise
+        print(f'error: unexpected {type(e).__name__}: {" ".join(str(e).split())[:500]} (set '
+              f'{DEBUG_ENV}=1 for the traceback)', file=sys.stderr)
+        return 3

@@ -12,7 +12,8 @@
   in-plane vector exactly.
 * ``n`` — the geometric normal (pbrt's ``ctx.n``, used by ``directionmix``).
 
-Mitsuba's own integrators leave ``si.duv_dx = si.duv_dy = 0``: every derivative here is then 0, so
+A bare ``mi.SurfaceInteraction3f()`` with only ``uv`` set is accepted: its empty fields count
+as 0. Mitsuba's own integrators leave ``si.duv_dx = si.duv_dy = 0``: every derivative here is then 0, so
 filters select the finest MIP level, checkerboards point-sample and noise uses all octaves — the
 behaviour of a point sample. ``pbrt_path`` fills them in.
 """
@@ -49,15 +50,18 @@ class TextureEvalContext:
 
     @staticmethod
     def from_si(si: mi.SurfaceInteraction3f) -> 'TextureEvalContext':
-        dudx = sanitize_partial(si.duv_dx.x)
-        dvdx = sanitize_partial(si.duv_dx.y)
-        dudy = sanitize_partial(si.duv_dy.x)
-        dvdy = sanitize_partial(si.duv_dy.y)
-        dpdx = dr.fma(si.dp_du, dudx, si.dp_dv * dvdx)
-        dpdy = dr.fma(si.dp_du, dudy, si.dp_dv * dvdy)
-        return TextureEvalContext(p=mi.Point3f(si.p), dpdx=mi.Vector3f(dpdx),
-                                  dpdy=mi.Vector3f(dpdy), n=mi.Normal3f(si.n),
-                                  uv=mi.Point2f(si.uv), dudx=dudx, dudy=dudy, dvdx=dvdx, dvdy=dvdy)
+        duv_dx, duv_dy = _field(si, 'duv_dx', mi.Vector2f), _field(si, 'duv_dy', mi.Vector2f)
+        dp_du, dp_dv = _field(si, 'dp_du', mi.Vector3f), _field(si, 'dp_dv', mi.Vector3f)
+        dudx = sanitize_partial(duv_dx.x)
+        dvdx = sanitize_partial(duv_dx.y)
+        dudy = sanitize_partial(duv_dy.x)
+        dvdy = sanitize_partial(duv_dy.y)
+        dpdx = dr.fma(dp_du, dudx, dp_dv * dvdx)
+        dpdy = dr.fma(dp_du, dudy, dp_dv * dvdy)
+        return TextureEvalContext(p=_field(si, 'p', mi.Point3f), dpdx=mi.Vector3f(dpdx),
+                                  dpdy=mi.Vector3f(dpdy), n=_field(si, 'n', mi.Normal3f),
+                                  uv=_field(si, 'uv', mi.Point2f), dudx=dudx, dudy=dudy,
+                                  dvdx=dvdx, dvdy=dvdy)
 
     @staticmethod
     def uv_jacobian(si: mi.SurfaceInteraction3f) -> 'TextureEvalContext':
@@ -67,6 +71,19 @@ class TextureEvalContext:
         the Jacobian used to turn a gradient in (s, t) into one in (u, v) (``eval_1_grad``).
         """
         one, zero = mi.Float(1), mi.Float(0)
-        return TextureEvalContext(p=mi.Point3f(si.p), dpdx=mi.Vector3f(si.dp_du),
-                                  dpdy=mi.Vector3f(si.dp_dv), n=mi.Normal3f(si.n),
-                                  uv=mi.Point2f(si.uv), dudx=one, dudy=zero, dvdx=zero, dvdy=one)
+        return TextureEvalContext(p=_field(si, 'p', mi.Point3f),
+                                  dpdx=_field(si, 'dp_du', mi.Vector3f),
+                                  dpdy=_field(si, 'dp_dv', mi.Vector3f),
+                                  n=_field(si, 'n', mi.Normal3f), uv=_field(si, 'uv', mi.Point2f),
+                                  dudx=one, dudy=zero, dvdx=zero, dvdy=one)
+
+
+def _field(si, name: str, cls):
+    """``si.<name>`` as ``cls``; 0 where the caller left it empty.
+
+    A bare ``mi.SurfaceInteraction3f()`` (only ``uv`` set, as a user or an emitter builds for a
+    lookup) has fields of width 0, which cannot be combined with width-1 or width-N arrays; they
+    mean "not given": zero differentials, p = n = 0 (``bitmap`` evaluates such a record too).
+    """
+    value = getattr(si, name)
+    return cls(value) if dr.width(value) > 0 else dr.zeros(cls)

@@ -123,18 +123,34 @@ def text(names=PLUGINS) -> str:
     return '\n'.join(lines)
 
 
-def update_readme(path: str, bench_results: str | None = None) -> None:
-    """Rewrite README's generated sections: the plugin reference and (given the benchmark's
-    ``results.md``) its summary lines."""
+PLUGIN_MARKERS = ('<!-- BEGIN PLUGIN REFERENCE -->', '<!-- END PLUGIN REFERENCE -->')
+BENCH_MARKERS = ('<!-- BEGIN BENCH SUMMARY -->', '<!-- END BENCH SUMMARY -->')
+
+
+def _replace_section(text: str, markers: tuple[str, str], body: str, path: str) -> str:
     import re
+    pattern = re.escape(markers[0]) + '.*?' + re.escape(markers[1])
+    if len(re.findall(pattern, text, flags=re.S)) != 1:
+        raise ValueError(f'"{path}" has no section between the lines {markers[0]} and '
+                         f'{markers[1]} (or more than one); add them where the section belongs; '
+                         f'nothing was changed')
+    return re.sub(pattern, lambda m: markers[0] + '\n' + body + markers[1], text, flags=re.S)
+
+
+def update_readme(path: str, bench_results: str | None = None) -> bool:
+    """Rewrite README's generated sections: the plugin reference and (given the benchmark's
+    ``results.md``) its summary lines. Raises ValueError (changing nothing) if a section's
+    markers are missing; returns whether the file changed."""
     text = open(path, encoding='utf-8').read()
-    text = re.sub(r'<!-- BEGIN PLUGIN REFERENCE -->.*<!-- END PLUGIN REFERENCE -->',
-                  lambda m: '<!-- BEGIN PLUGIN REFERENCE -->\n' + markdown()
-                  + '<!-- END PLUGIN REFERENCE -->', text, flags=re.S)
+    new = _replace_section(text, PLUGIN_MARKERS, markdown(), path)
     if bench_results:
-        summary = open(bench_results, encoding='utf-8').read().split('## Summary')[1].strip()
-        text = re.sub(r'<!-- BEGIN BENCH SUMMARY -->.*<!-- END BENCH SUMMARY -->',
-                      lambda m: '<!-- BEGIN BENCH SUMMARY -->\n' + summary
-                      + '\n<!-- END BENCH SUMMARY -->', text, flags=re.S)
+        parts = open(bench_results, encoding='utf-8').read().split('## Summary')
+        if len(parts) < 2:
+            raise ValueError(f'"{bench_results}" has no "## Summary" section (expected the '
+                             f'results.md of a full `bench render` run); nothing was changed')
+        new = _replace_section(new, BENCH_MARKERS, parts[1].strip() + '\n', path)
+    if new == text:
+        return False
     with open(path, 'w', encoding='utf-8') as f:
-        f.write(text)
+        f.write(new)
+    return True

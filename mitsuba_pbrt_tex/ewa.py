@@ -67,6 +67,10 @@ ALPHA = 2.0
 SPAN_SLACK = 1e-3
 COLUMNS_PER_STEP = 2          # adjacent_wrapped() below gives exactly two columns
 _EXP_NEG_ALPHA = float(np.float32(np.exp(-ALPHA)))
+#: Taps are summed scaled by 2^-20 and the normalised sum scaled back: powers of two, so every
+#: result is bit-identical (texels above ~1e-32 in magnitude), while sums of up to 2^20 taps of
+#: texels near float32's maximum (3.4e38) stay finite instead of overflowing to inf.
+_ACC_SCALE = 2.0 ** -20
 
 
 def _finite(x):
@@ -149,8 +153,10 @@ class EWAFilter:
 
         det = -B * B + 4 * A * C
         inv_det = dr.rcp(det)
-        u_ext = 2 * inv_det * dr.safe_sqrt(det * C)
-        v_ext = 2 * inv_det * dr.safe_sqrt(A * det)
+        # pbrt's 2·sqrt(det·C)/det as 2·sqrt(C/det): the same number, but det·C underflows to 0
+        # for footprints of ~1e8 texels (a 1×1 image), which emptied the ellipse
+        u_ext = 2 * dr.safe_sqrt(C * inv_det)
+        v_ext = 2 * dr.safe_sqrt(A * inv_det)
         # Bounded extents: a non-finite footprint (huge derivatives at a coarse level) cannot
         # produce an endless loop; such lanes are at the coarsest level where 1 texel suffices.
         limit = 2.0 * max(mip.width, mip.height) + 2
@@ -200,7 +206,7 @@ class EWAFilter:
                     texel = view.gather(row_y, ix, inside & row_ok & valid)
                 else:
                     texel = mip.fetch(view, col, it, inside)
-                acc = dr.fma(texel, wgt, acc)
+                acc = dr.fma(texel, wgt * _ACC_SCALE, acc)
                 acc_w = acc_w + wgt
             # advance: next columns, or the first column of the next row
             next_row = i_s + COLUMNS_PER_STEP > s_end
@@ -214,7 +220,8 @@ class EWAFilter:
 
         state = (it, i_s, s_end, row_y, row_ok, dr.zeros(T), mi.Float(0))
         *_, acc, acc_w = dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_ewa')
-        result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1), dr.zeros(T))
+        result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1) * (1 / _ACC_SCALE),
+                           dr.zeros(T))
         return dr.select(beyond, mip.coarsest(active & beyond), result)
 
 

@@ -1,11 +1,11 @@
-"""The four image filters behind one call: ``TextureFilter(tc, active) -> texel value``.
+"""The four image filters behind one call: ``TextureFilter(pyramid, tc, active) -> value``.
 
 Each filter reads a :class:`~mitsuba_pbrt_tex.mapping.TexCoord2D` (st and its four derivatives)
 and returns a Float (1-channel image) or Color3f (RGB image):
 
 * ``point``/``bilinear`` — one level, chosen by the isotropic footprint width
-  (:func:`~mitsuba_pbrt_tex.mipmap.footprint_width`); level 0 when the texture has no pyramid
-  (see ``pbrt_imagemap``: the pyramid of these two filters is built on request);
+  (:func:`~mitsuba_pbrt_tex.mipmap.footprint_width`); level 0 when the pyramid holds level 0
+  alone (see ``pbrt_imagemap``: the other levels of these two filters are built on request);
 * ``trilinear`` — two levels blended;
 * ``ewa`` — :class:`~mitsuba_pbrt_tex.ewa.EWAFilter`;
 * ``box`` — :func:`~mitsuba_pbrt_tex.box.box`, the exact average over the footprint, which also

@@ -21,29 +21,35 @@ images are linear by definition, as in pbrt-v4):
 
 Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
 
-Non-finite texels are replaced by 0 with a warning that gives their count.
+Non-finite texels are replaced by 0 with a warning that gives their count, and texels beyond
+±1e38 are clamped to ±1e38 (also with a warning): filtering values near float32's maximum
+(3.4e38) would overflow.
 Decoded files are cached as :class:`SharedImage` objects keyed by (real path, modification
-time, size, encoding, variant): Mitsuba constructs plugins on worker threads and merges identical
-ones, so several textures may ask for the same file at once; the cache reads each file once under
-a per-key lock (the work under it — file decoding in numpy, one host copy into a Dr.Jit array —
-launches no kernel, so a waiting worker cannot starve it), and its pyramids are built once on
-first request (see :meth:`SharedImage.pyramid`). The
+time, size, encoding, variant), weakly: the last texture to let go of a file's texels (deleted,
+or given new ``data``) frees them, so nothing accumulates over reloads. Mitsuba constructs
+plugins on worker threads and merges identical ones, so several textures may ask for the same
+file at once; the cache reads each file once under a per-key lock (the work under it — file
+decoding in numpy, one host copy into a Dr.Jit array — launches no kernel, so a waiting worker
+cannot starve it), and its pyramids are built once on first request (see
+:meth:`SharedImage.pyramid`). The
 wrap mode is not part of the key because the pyramid does not depend on it (each coarse texel
 averages texels inside the image; see :mod:`mitsuba_pbrt_tex.mipmap`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import threading
+import weakref
 from dataclasses import dataclass
 
 import mitsuba as mi
 import numpy as np
 
 from .cache import BuildOnceCache
-from .mipmap import Pyramid, build_pyramid
+from .mipmap import TEXEL_LIMIT, Pyramid, build_pyramid
 
 
 class ImageError(ValueError):
@@ -135,6 +141,13 @@ def decode_integer(raw: np.ndarray, encoding: Encoding) -> np.ndarray:
 def _read_exr(path: str) -> np.ndarray:
     import OpenEXR
     try:
+        # interleaved first: RGB(A) comes as one (H, W, 3|4) array, without the copy that
+        # stacking separate planes costs (the image's size again, at the peak of a load)
+        with OpenEXR.File(path) as f:
+            channels = {name: ch.pixels for name, ch in f.channels().items()}
+        for name in ('RGB', 'RGBA'):
+            if name in channels:
+                return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)
         with OpenEXR.File(path, separate_channels=True) as f:
             channels = {name: ch.pixels for name, ch in f.channels().items()}
     except Exception as e:  # the OpenEXR package raises plain exceptions for corrupt files
@@ -194,16 +207,29 @@ def read_image(path: str, encoding: Encoding | None) -> DecodedImage:
     return decode_bitmap(bmp, encoding, f'image file "{path}"')
 
 
+def warn_clamped(count: int) -> None:
+    if count:
+        mi.Log(mi.LogLevel.Warn, f'pbrt_imagemap: {count} texel value(s) beyond ±1e38 clamped to '
+                                 f'±1e38 (filtering larger values would overflow float32)')
+
+
 def finish_texels(texels: np.ndarray, encoding: Encoding, bit_depth: str) -> DecodedImage:
     texels = np.ascontiguousarray(texels, dtype=np.float32)
     if texels.ndim != 3 or texels.shape[2] not in (1, 3) or min(texels.shape[:2]) < 1:
         raise ImageError(f'image has shape {texels.shape}; expected (H, W, 1) or (H, W, 3)')
     bad = ~np.isfinite(texels)
     count = int(bad.sum())
+    del bad
     if count:
-        texels = np.where(bad, np.float32(0), texels)
+        texels = np.where(np.isfinite(texels), texels, np.float32(0))
+    if texels.size and (texels.max() > TEXEL_LIMIT or texels.min() < -TEXEL_LIMIT):
+        clamped = int(np.count_nonzero(texels > TEXEL_LIMIT)
+                      + np.count_nonzero(texels < -TEXEL_LIMIT))
+        texels = np.clip(texels, -TEXEL_LIMIT, TEXEL_LIMIT)
+        warn_clamped(clamped)
     texels.setflags(write=False)
     return DecodedImage(texels, encoding, bit_depth, count)
+
 
 
 # ---------------------------------------------------------------------------------- cache
@@ -235,6 +261,7 @@ class SharedImage:
         if pyr is not None:
             return pyr
         pyr = build_pyramid(self.tensor, levels)
+        release_build_temporaries(pyr)
         with self._lock:
             if levels:
                 self._complete = self._complete or pyr
@@ -244,7 +271,52 @@ class SharedImage:
             return self._complete or self._level0
 
 
-image_cache = BuildOnceCache()
+def _pack(key, shared: SharedImage, forget):
+    """Cache entries hold the decoded file weakly: it lives as long as a texture holds it."""
+    return weakref.ref(shared, lambda _: forget())
+
+
+image_cache = BuildOnceCache(_pack, lambda ref: ref())
+
+# ---------------------------------------------------------------------------------- files read
+_recorders_lock = threading.Lock()
+_recorders: list[set] = []
+
+
+@contextlib.contextmanager
+def files_read():
+    """Collect the real paths of the image files textures read (cached or not) inside the
+    ``with`` block, from any thread: ``python -m mitsuba_pbrt_tex render`` refuses outputs
+    that would overwrite one of them."""
+    found: set[str] = set()
+    with _recorders_lock:
+        _recorders.append(found)
+    try:
+        yield found
+    finally:
+        with _recorders_lock:
+            _recorders.remove(found)
+
+
+def _note_read(path: str) -> None:
+    with _recorders_lock:
+        for found in _recorders:
+            found.add(os.path.realpath(path))
+
+
+#: A pyramid at least this large gives the memory its build used back to the system afterwards.
+RELEASE_BYTES = 16 * 2**20
+
+
+def release_build_temporaries(pyramid: Pyramid) -> None:
+    """After building a large pyramid: wait for the build's kernels and flush Dr.Jit's
+    allocation cache, which would otherwise keep the build's temporaries (the RGBA copy that the
+    levels' buffer replaces, the half-downsampled levels: 1.4× the image for RGB) resident until
+    something reuses them."""
+    if pyramid.nbytes() >= RELEASE_BYTES:
+        import drjit as dr
+        dr.sync_thread()
+        dr.flush_malloc_cache()
 
 
 def file_key(path: str) -> tuple:
@@ -258,6 +330,7 @@ def load_image(path: str, encoding: Encoding | None) -> SharedImage:
     variant; the key includes the modification time, so edited files are re-read)."""
     if not os.path.isfile(path):
         raise ImageError(f'file "{path}" does not exist')
+    _note_read(path)
     key = (file_key(path), None if encoding is None else str(encoding), mi.variant())
 
     def build():

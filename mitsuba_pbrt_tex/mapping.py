@@ -37,13 +37,13 @@ error):
 | udelta, vdelta | float | 0 | `uv` and `planar`: offset added to s and t | no |
 | to_uv | transform | identity | `uv`: Mitsuba-style 2D transform applied to (u, v) first | no |
 | v1, v2 | vector | (1,0,0), (0,1,0) | `planar`: s = udelta + v1·p, t = vdelta + v2·p (texture space) | no |
-| to_world | transform | identity | `spherical`, `cylindrical`, `planar`: texture space → world | no |
+| to_world | transform | identity | `spherical`, `cylindrical`, `planar`: texture space → world; invertible (singular values of its 3×3 part ≥ 1e-9 and ≥ the largest / 1e7) | no |
 
 3D mapping parameters (solid textures):
 
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
-| to_world | transform | identity | texture space → world; lookups use p in texture space | no |
+| to_world | transform | identity | texture space → world; lookups use p in texture space; invertible as above | no |
 """
 
 from __future__ import annotations
@@ -82,6 +82,19 @@ class TexCoord3D:
     dpdy: object
 
 
+#: :func:`finite_st` clamps texture coordinates to this magnitude (pbrt-v4's clamp of the partials)
+ST_LIMIT = 1e8
+
+
+def finite_st(st):
+    """(s, t) for textures that use the coordinates as values (``pbrt_bilerp``, ``pbrt_uv``):
+    NaN → 0 and clamped to ±ST_LIMIT (±inf → ±1e8), so the result is finite (NaN/inf uv come
+    from meshes with bad ``vt`` entries; image lookups sanitise their own coordinates)."""
+    def one(x):
+        return dr.clip(dr.select(dr.isnan(x), 0.0, x), -ST_LIMIT, ST_LIMIT)
+    return mi.Point2f(one(st.x), one(st.y))
+
+
 def _safe_div(a, b):
     return dr.select(b != 0, a / b, 0.0)
 
@@ -115,9 +128,24 @@ class UVMapping:
         s, d = (su, sv), (du, dv)
         self.a = [[s[r] * m[r][0], s[r] * m[r][1]] for r in range(2)]
         self.b = [s[r] * m[r][2] + d[r] for r in range(2)]
+        self.to_uv = m                  # its 2x3 affine matrix (identity when not given)
         self.params = dict(uscale=su, vscale=sv, udelta=du, vdelta=dv)
         if to_uv is not None:
             self.params['to_uv'] = 'custom'
+
+    def to_uv_3x3(self) -> mi.ScalarAffineTransform3f:
+        """``to_uv`` as Mitsuba's ``bitmap`` exposes it in ``mi.traverse``."""
+        (a, b, c), (d, e, f) = self.to_uv
+        return mi.ScalarAffineTransform3f(mi.ScalarMatrix3f(a, b, c, d, e, f, 0, 0, 1))
+
+    def with_to_uv(self, to_uv3) -> 'UVMapping':
+        """The same scale and offset after another ``to_uv`` (a 3x3 affine transform)."""
+        m = to_uv3.matrix
+        t4 = mi.ScalarTransform4f(mi.ScalarMatrix4f(m[0][0], m[0][1], 0, m[0][2],
+                                                    m[1][0], m[1][1], 0, m[1][2],
+                                                    0, 0, 1, 0, 0, 0, 0, 1))
+        p = self.params
+        return UVMapping(p['uscale'], p['vscale'], p['udelta'], p['vdelta'], t4)
 
     def map(self, ctx: TextureEvalContext) -> TexCoord2D:
         (a00, a01), (a10, a11) = self.a
@@ -246,7 +274,7 @@ def mapping_2d(p: Params, *, allow_to_uv: bool = True):
         to_uv = p.transform('to_uv') if allow_to_uv else None
         return UVMapping(p.float('uscale', 1.0), p.float('vscale', 1.0),
                          p.float('udelta', 0.0), p.float('vdelta', 0.0), to_uv)
-    to_world = p.transform('to_world')
+    to_world = p.transform('to_world', invertible=True)
     if kind == 'spherical':
         return SphericalMapping(to_world)
     if kind == 'cylindrical':
@@ -256,4 +284,4 @@ def mapping_2d(p: Params, *, allow_to_uv: bool = True):
 
 
 def mapping_3d(p: Params) -> PointTransformMapping:
-    return PointTransformMapping(p.transform('to_world'))
+    return PointTransformMapping(p.transform('to_world', invertible=True))

@@ -1,30 +1,69 @@
 """Writing rendered images: OpenEXR (through the OpenEXR package) and a tone-mapped PNG, atomically.
 
 Both files are first written to a temporary file in the destination folder and then renamed over
-the destination, so a crash never leaves a half-written image, and readers never see one.
+the destination, so a crash never leaves a half-written image, and readers never see one. The
+temporary file is removed on any exception — the command line turns SIGTERM into one
+(:class:`Terminated`) — and the image gets the permissions a newly created file gets under the
+user's umask (not the 0600 of the temporary file).
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import tempfile
+import threading
 
 import numpy as np
+
+
+class Terminated(BaseException):
+    """Raised by the SIGTERM handler :func:`terminate_on_sigterm` installs (a BaseException, like
+    KeyboardInterrupt, so only cleanup code sees it)."""
+
+
+def terminate_on_sigterm() -> None:
+    """Turn SIGTERM into :class:`Terminated` (main thread), so temporary files are removed."""
+    def handler(signum, frame):
+        raise Terminated(f'terminated by signal {signum}')
+    try:
+        signal.signal(signal.SIGTERM, handler)
+    except ValueError:             # not the main thread: signals stay as they are
+        pass
+
+
+_umask_lock = threading.Lock()
+
+
+def _umask() -> int:
+    try:                           # Linux ≥ 4.7 reports it without changing it
+        with open('/proc/self/status') as f:
+            for line in f:
+                if line.startswith('Umask:'):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    with _umask_lock:              # elsewhere reading the umask means setting it: set it back
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
 
 
 def _atomic(path: str, write) -> None:
     folder = os.path.dirname(os.path.abspath(path)) or '.'
     os.makedirs(folder, exist_ok=True)
     suffix = os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(prefix='.tmp-', suffix=suffix, dir=folder)
-    os.close(fd)
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(prefix='.tmp-', suffix=suffix, dir=folder)
+        os.close(fd)
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())       # mkstemp made it 0600
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+        tmp = None
+    finally:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
-        raise
 
 
 def write_exr(path: str, image: np.ndarray, channel_names: list[str] | None = None) -> None:

@@ -17,6 +17,16 @@ from typing import Iterable
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+
+#: The largest finite float32. Mitsuba reads numbers as doubles; larger values would silently
+#: become inf once they reach a float32 variant's arrays.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+#: Bounds on a texture space's ``to_world`` (singular values of its 3×3 part): lookups apply
+#: its inverse in float32, so the inverse must exist and be representable with some precision.
+TO_WORLD_MIN_SCALE = 1e-9          # a point at distance 1 lands at most 1e9 texture units away
+TO_WORLD_MAX_CONDITION = 1e7       # float32 has 24 bits: a worse-conditioned inverse is noise
 
 
 class PluginError(ValueError):
@@ -33,6 +43,15 @@ _TYPE_NAMES = {
 def _type_name(props: mi.Properties, name: str) -> str:
     t = str(props.type(name)).split('.')[-1]
     return _TYPE_NAMES.get(t, t.lower())
+
+
+def _value_text(props: mi.Properties, name: str) -> str:
+    """``an rgb value ([1, 0, 0])`` etc. for error messages."""
+    kind = _type_name(props, name)
+    if kind == 'rgb':
+        c = props[name]
+        return f'an rgb value ([{float(c[0]):g}, {float(c[1]):g}, {float(c[2]):g}])'
+    return f'a {kind} value'
 
 
 class Params:
@@ -136,13 +155,22 @@ class Params:
         return value
 
     def _check_range(self, key, value, lo, hi, lo_open) -> None:
-        if isinstance(value, float) and not math.isfinite(value):
-            raise self.error(key, f'must be finite, got {value}')
+        if isinstance(value, float):
+            self._check_finite(key, value)
         if lo is not None and (value < lo or (lo_open and value == lo)):
             bound = f'> {lo}' if lo_open else f'>= {lo}'
             raise self.error(key, f'must be {bound}, got {value}')
         if hi is not None and value > hi:
             raise self.error(key, f'must be <= {hi}, got {value}')
+
+    def _check_finite(self, key, *values) -> None:
+        """Every value finite and within float32's range (1e39 would become inf)."""
+        shown = values[0] if len(values) == 1 else list(values)
+        if not all(math.isfinite(v) for v in values):
+            raise self.error(key, f'must be finite, got {shown}')
+        if any(abs(v) > FLOAT32_MAX for v in values):
+            raise self.error(key, f'must be within float32\'s range (magnitude at most '
+                                  f'{FLOAT32_MAX:.8g}), got {shown}')
 
     def float_or_rgb(self, name: str, default: float) -> float | tuple[float, float, float]:
         """A float, or an ``rgb`` value as a tuple of three floats."""
@@ -157,8 +185,7 @@ class Params:
                                   f'{_type_name(self.props, key)}')
         c = self.props[key]
         rgb = (float(c[0]), float(c[1]), float(c[2]))
-        if not all(math.isfinite(x) for x in rgb):
-            raise self.error(key, f'must be finite, got {list(rgb)}')
+        self._check_finite(key, *rgb)
         return rgb
 
     # ------------------------------------------------------------------ vectors and transforms
@@ -170,31 +197,53 @@ class Params:
             raise self.error(key, f'expected a 3D vector (e.g. <vector name="{key}" x="1" y="0" '
                                   f'z="0"/>), got a {_type_name(self.props, key)}')
         v = self.props[key]
-        out = mi.ScalarVector3f(float(v[0]), float(v[1]), float(v[2]))
-        if not all(math.isfinite(c) for c in out):
-            raise self.error(key, f'must be finite, got {list(out)}')
-        return out
+        xyz = (float(v[0]), float(v[1]), float(v[2]))
+        self._check_finite(key, *xyz)
+        return mi.ScalarVector3f(*xyz)
 
-    def transform(self, name: str, *, alias: str | None = None) -> mi.ScalarTransform4f | None:
+    def transform(self, name: str, *, alias: str | None = None,
+                  invertible: bool = False) -> mi.ScalarTransform4f | None:
+        """A transform; ``invertible``: one whose inverse lookups apply (a texture space's
+        ``to_world``), so it must not be singular or too close to it (see the bounds above)."""
         key = self._pick(name, alias)
         if key is None:
             return None
         if self._kind(key) != 'Transform':
             raise self.error(key, f'expected a transform, got a {_type_name(self.props, key)}')
         m = self.props[key].matrix
-        t = mi.ScalarTransform4f(dr.scalar.Matrix4f(m))
-        values = [float(t.matrix[i][j]) for i in range(4) for j in range(4)]
+        values = [float(m[i][j]) for i in range(4) for j in range(4)]
         if not all(math.isfinite(x) for x in values):
             raise self.error(key, 'the matrix has non-finite entries')
-        return t
+        if any(abs(x) > FLOAT32_MAX for x in values):
+            raise self.error(key, f'the matrix has entries beyond float32\'s range (magnitude at '
+                                  f'most {FLOAT32_MAX:.8g})')
+        if invertible:
+            linear = np.array(values, dtype=np.float64).reshape(4, 4)[:3, :3]
+            sv = np.linalg.svd(linear, compute_uv=False)
+            if not (sv[-1] >= TO_WORLD_MIN_SCALE and sv[-1] >= sv[0] / TO_WORLD_MAX_CONDITION):
+                raise self.error(key, f'is singular or nearly so (singular values of its 3x3 '
+                                      f'part: {", ".join(f"{x:.3g}" for x in sv)}); lookups use '
+                                      f'its inverse, so accepted: smallest singular value >= '
+                                      f'{TO_WORLD_MIN_SCALE:g} and >= largest / '
+                                      f'{TO_WORLD_MAX_CONDITION:g}')
+        return mi.ScalarTransform4f(dr.scalar.Matrix4f(m))
 
     # ------------------------------------------------------------------ textures
-    def texture(self, name: str, default: float) -> mi.Texture:
-        """A float, an ``rgb``/``spectrum`` value, or a nested texture (as pbrt allows)."""
+    def texture(self, name: str, default: float, *, float_only: bool = False) -> mi.Texture:
+        """A float, an ``rgb``/``spectrum`` value, or a nested texture (as pbrt allows).
+
+        ``float_only``: a parameter pbrt declares as a *float* texture (evaluated with
+        ``eval_1``) refuses rgb and spectrum values, which would silently become their grey
+        mean; nested textures are accepted (their ``eval_1``)."""
         key = self._pick(name, None)
         if key is None:
             return self.props.get_unbounded_texture(name, float(default))
         kind = self._kind(key)
+        if float_only and (kind == 'Color' or (kind == 'Spectrum'
+                                               and not self.props[key].is_uniform())):
+            raise self.error(key, f'expected a float or a texture, got {_value_text(self.props, key)}'
+                                  f'; this parameter is a float texture (an rgb or spectrum value '
+                                  f'would be used as its grey mean)')
         if kind == 'Object':
             obj = self.props[key]
             if not isinstance(obj, mi.Texture):
@@ -202,8 +251,11 @@ class Params:
                                       f'a nested {type(obj).__name__}')
             return obj
         if kind in ('Float', 'Integer', 'Color', 'Spectrum'):
-            if kind in ('Float', 'Integer') and not math.isfinite(float(self.props[key])):
-                raise self.error(key, f'must be finite, got {self.props[key]}')
+            if kind in ('Float', 'Integer'):
+                self._check_finite(key, float(self.props[key]))
+            elif kind == 'Color':
+                c = self.props[key]
+                self._check_finite(key, float(c[0]), float(c[1]), float(c[2]))
             return self.props.get_unbounded_texture(key)
         raise self.error(key, f'expected a float, an rgb value or a nested texture, got a '
                               f'{_type_name(self.props, key)}')

@@ -119,20 +119,23 @@ class CameraFootprint:
         frame = mi.Frame3f(d)
         dxf = dr.normalize(frame.to_local(dr.normalize(ray.d_x))) - mi.Vector3f(0, 0, 1)
         dyf = dr.normalize(frame.to_local(dr.normalize(ray.d_y))) - mi.Vector3f(0, 0, 1)
-        self.min_pos_x = self._shortest(dox)
-        self.min_pos_y = self._shortest(doy)
-        self.min_dir_x = self._shortest(dxf)
-        self.min_dir_y = self._shortest(dyf)
+        self.min_pos_x, self.min_pos_y, self.min_dir_x, self.min_dir_y = \
+            self._shortest((dox, doy, dxf, dyf))
 
     @staticmethod
-    def _shortest(v: mi.Vector3f) -> mi.Vector3f:
-        """The shortest finite vector of ``v`` (the first one on ties; 0 if none is finite),
-        found on the device — no read-back, so it can be recorded in a frozen function."""
+    def _shortest(vectors) -> list:
+        """For each array of vectors (all of one width n), its shortest finite vector (the first
+        one on ties; 0 if none is finite), found on the device in two block reductions — no
+        read-back, so a frozen function can record it, and few kernel launches per render."""
+        n = dr.width(vectors[0])
+        v = mi.Vector3f(*(dr.concat([u[i] for u in vectors]) for i in range(3)))
         length2 = dr.select(dr.all(dr.isfinite(v)), dr.squared_norm(v), dr.inf)
-        shortest = dr.min(length2)
-        index = dr.select(length2 == shortest, dr.arange(mi.UInt32, dr.width(v)), 0xFFFFFFFF)
-        found = dr.gather(mi.Vector3f, v, dr.min(index))
-        return dr.select(dr.isfinite(shortest), found, 0.0)
+        shortest = dr.block_reduce(dr.ReduceOp.Min, length2, n)
+        index = dr.arange(mi.UInt32, len(vectors) * n)
+        at_min = length2 == dr.repeat(shortest, n)
+        first = dr.block_reduce(dr.ReduceOp.Min, dr.select(at_min, index, 0xFFFFFFFF), n)
+        found = dr.select(dr.isfinite(shortest), dr.gather(mi.Vector3f, v, first), 0.0)
+        return [dr.gather(mi.Vector3f, found, mi.UInt32(k)) for k in range(len(vectors))]
 
     def dp_dxy(self, p, n, scale: float, active):
         """Approximate ``dp/dx, dp/dy`` at world point p with geometric normal n."""

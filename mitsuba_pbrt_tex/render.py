@@ -10,7 +10,9 @@ reported separately.
 from __future__ import annotations
 
 import os
+import re
 import sys
+import tempfile
 import time
 import xml.etree.ElementTree as ET
 
@@ -21,33 +23,172 @@ class RenderError(RuntimeError):
     pass
 
 
-def scene_inputs(scene_path: str) -> list[str]:
-    """Real paths of files a scene XML refers to (``filename`` strings, includes)."""
-    folder = os.path.dirname(os.path.abspath(scene_path))
-    out = []
+# ------------------------------------------------------------------------------ scene inputs
+_VAR_RE = re.compile(r'\$([A-Za-z_][A-Za-z0-9_]*)')
+_NUMBERS_RE = re.compile(r'^[-+0-9.eE,\s]*$')          # "0.5", "0, 1, 0": not file names
+_NOT_PATHS = ('type', 'version', 'name', 'id')        # identifiers, never read as files
+
+
+def _resolver_dirs() -> list[str]:
+    """The folders of Mitsuba's file resolver (when a variant is set), in search order."""
     try:
-        root = ET.parse(scene_path).getroot()
-    except (ET.ParseError, OSError):
-        return out
-    for el in root.iter():
-        if el.tag == 'string' and el.get('name') == 'filename' and el.get('value'):
-            out.append(el.get('value'))
-        elif el.tag == 'include' and el.get('filename'):
-            out.append(el.get('filename'))
-    return [os.path.realpath(v if os.path.isabs(v) else os.path.join(folder, v)) for v in out]
+        import mitsuba as mi
+        return [str(p) for p in mi.file_resolver()] if mi.variant() else []
+    except Exception:          # pragma: no cover - no variant/resolver: the other folders remain
+        return []
 
 
-def check_output(scene_path: str, out_path: str) -> tuple[str, str]:
-    """Validate the output path; returns (exr path, png path)."""
+def _candidates(value: str, folders: list[str]) -> list[str]:
+    if os.path.isabs(value):
+        return [value]
+    return [os.path.join(f, value) for f in folders] + [os.path.abspath(value)]
+
+
+def scene_inputs(scene_path: str) -> set[str]:
+    """Real paths of every existing file the scene XML may read, as Mitsuba's loader finds them:
+    ``<default>`` values substituted for ``$name`` in every attribute, ``<include>``d files
+    followed (recursively), and every attribute value looked up like the file resolver does
+    (``<path>`` folders, the scene's folder, the resolver's folders, the working directory).
+    Any attribute that names an existing file counts, whatever the parameter: protecting too
+    much only refuses an output name, protecting too little loses a user's file."""
+    scene_path = os.path.abspath(scene_path)
+    found: set[str] = {os.path.realpath(scene_path)}
+    defaults: dict[str, str] = {}
+    extra_dirs: list[str] = []
+    seen_docs: set[str] = set()
+    roots = []
+
+    def read(path):
+        real = os.path.realpath(path)
+        if real in seen_docs:
+            return
+        seen_docs.add(real)
+        try:
+            root = ET.parse(path).getroot()
+        except (ET.ParseError, OSError):
+            return                      # Mitsuba reports this file when it loads the scene
+        roots.append((path, root))
+        for el in root.iter('default'):
+            if el.get('name') is not None and el.get('value') is not None:
+                defaults.setdefault(el.get('name'), el.get('value'))
+        for el in root.iter('path'):            # <path value="..."/> extends the resolver
+            if el.get('value'):
+                extra_dirs.extend(_candidates(subst(el.get('value')),
+                                              [os.path.dirname(scene_path)]))
+        for el in root.iter('include'):
+            if el.get('filename'):
+                for c in _candidates(subst(el.get('filename')), folders(path)):
+                    if os.path.isfile(c):
+                        read(c)
+
+    def subst(value: str) -> str:
+        return _VAR_RE.sub(lambda m: defaults.get(m.group(1), m.group(0)), value)
+
+    def folders(doc_path):
+        base = [os.path.dirname(scene_path), os.path.dirname(os.path.abspath(doc_path))]
+        return extra_dirs + base + _resolver_dirs()
+
+    read(scene_path)
+    for doc, root in roots:
+        for el in root.iter():
+            for attr, value in el.attrib.items():
+                if attr in _NOT_PATHS:
+                    continue
+                value = subst(value).strip()
+                if not value or len(value) > 4096 or _NUMBERS_RE.match(value):
+                    continue
+                for c in _candidates(value, folders(doc)):
+                    if os.path.isfile(c):
+                        found.add(os.path.realpath(c))
+    return found
+
+
+# ------------------------------------------------------------------------------ outputs
+def output_paths(out_path: str) -> tuple[str, str]:
+    """(exr path, png path) for ``-o``."""
     if not out_path.lower().endswith('.exr'):
         raise RenderError(f'output "{out_path}" must end in .exr (a tone-mapped .png is written '
                           f'beside it)')
-    png_path = out_path[:-4] + '.png'
-    protected = {os.path.realpath(scene_path)} | set(scene_inputs(scene_path))
-    for p in (out_path, png_path):
-        if os.path.realpath(p) in protected:
+    return out_path, out_path[:-4] + '.png'
+
+
+def check_writable(path: str) -> None:
+    """Can ``path`` be written (atomically: a file created in its folder, renamed over it)?
+    Missing folders are created here, before rendering; a probe file is created and removed."""
+    if os.path.isdir(path):
+        raise RenderError(f'cannot write "{path}": it is a directory')
+    folder = os.path.dirname(os.path.abspath(path))
+    probe = None
+    try:
+        os.makedirs(folder, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix='.tmp-', suffix='.probe', dir=folder)
+        os.close(fd)
+    except OSError as e:
+        reason = e.strerror or str(e)
+        if isinstance(e, (FileExistsError, NotADirectoryError)):
+            reason = 'a part of the folder path is a file, not a folder'
+        raise RenderError(f'cannot write "{path}": cannot create a file in "{folder}": '
+                          f'{reason}') from None
+    finally:
+        if probe is not None:
+            os.unlink(probe)
+    if os.path.exists(path) and not os.access(path, os.W_OK):
+        raise RenderError(f'cannot write "{path}": the file exists and is read-only')
+
+
+def check_not_inputs(paths, inputs: set[str]) -> None:
+    for p in paths:
+        if os.path.realpath(p) in inputs:
             raise RenderError(f'refusing to overwrite "{p}": it is the scene or one of its inputs')
-    return out_path, png_path
+
+
+def check_output(scene_path: str, out_path: str) -> tuple[str, str]:
+    """Validate the output path against the scene's XML inputs; returns (exr path, png path)."""
+    exr_path, png_path = output_paths(out_path)
+    check_not_inputs((exr_path, png_path), scene_inputs(scene_path))
+    return exr_path, png_path
+
+
+# ------------------------------------------------------------------------------ errors
+_AT_RE = re.compile(r'At (.*? \(line \d+, col \d+\))')
+_OURS_RE = re.compile(r'^(?:\w+\.)*(?:PluginError|ImageError|UnsupportedVariantError): (.*)$',
+                      re.M)
+
+
+def error_line(e: BaseException) -> str:
+    """One line for an exception Mitsuba raised while loading/rendering: our plugin's message
+    (with the scene position) when a plugin of ours refused a parameter, Mitsuba's own message
+    otherwise, without the C++ source position and without the Python traceback."""
+    text = str(e)
+    at = _AT_RE.search(text)
+    ours = _OURS_RE.findall(text)
+    if ours:
+        msg = ours[-1].strip()
+        return f'{at.group(1)}: {msg}' if at else msg
+    text = text.split('Traceback (most recent call last)')[0]
+    text = re.sub(r'\[[\w.]+:\d+\]\s*', '', text)
+    text = ' '.join(text.split()).rstrip(':')
+    return text or type(e).__name__
+
+
+def _set_variant(variant: str) -> None:
+    import mitsuba as mi
+
+    from .variants import support_problem
+    if variant not in mi.variants():
+        raise RenderError(f'unknown --variant "{variant}"; variants of this Mitsuba build: '
+                          f'{", ".join(mi.variants())}')
+    problem = support_problem(variant)
+    if problem:
+        raise RenderError(f'--variant {variant}: {problem}')
+    try:
+        mi.set_variant(variant)
+    except Exception as e:
+        raise RenderError(f'--variant {variant} cannot be used here: {error_line(e)}') from None
+
+
+#: samples per pixel at most (Mitsuba's samplers count them in 32 bits)
+MAX_SPP = 2**32 - 1
 
 
 def _passes(spp: int) -> tuple[int, int]:
@@ -71,40 +212,68 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     import mitsuba_pbrt_tex as mpt
 
     stream = stream or sys.stderr
+    if spp is not None and int(spp) < 1:
+        raise RenderError(f'--spp must be >= 1, got {spp}')
+    if spp is not None and int(spp) > MAX_SPP:
+        raise RenderError(f'--spp must be <= {MAX_SPP} (the sampler counts samples in 32 bits), '
+                          f'got {spp}')
     if not os.path.isfile(scene_path):
         raise RenderError(f'scene "{scene_path}" does not exist')
-    exr_path, png_path = check_output(scene_path, out_path)
-    mi.set_variant(variant)
+    exr_path, png_path = output_paths(out_path)
+    for p in (exr_path, png_path):          # before anything slow: a render must not be lost
+        check_writable(p)
+    _set_variant(variant)
     mpt.register()
+    inputs = scene_inputs(scene_path)       # with this variant's file resolver
+    check_not_inputs((exr_path, png_path), inputs)
+    from .image import files_read
     t0 = time.perf_counter()
-    scene = mi.load_file(scene_path)
+    try:
+        with files_read() as read:
+            scene = mi.load_file(scene_path)
+    except Exception as e:
+        raise RenderError(error_line(e)) from None
     t_load = time.perf_counter() - t0
+    check_not_inputs((exr_path, png_path), inputs | read)    # what our plugins actually read
+    if not scene.sensors():
+        raise RenderError(f'scene "{scene_path}" has no sensor: add a <sensor> (a camera)')
     sensor = scene.sensors()[0]
     integrator = scene.integrator()
-    total = int(spp) if spp else int(sensor.sampler().sample_count())
+    total = int(spp) if spp is not None else int(sensor.sampler().sample_count())
     if total < 1:
-        raise RenderError(f'--spp must be >= 1, got {total}')
+        raise RenderError(f"the scene's sampler has sample_count {total}; give --spp >= 1")
     passes, per_pass = _passes(total)
+    size = sensor.film().crop_size()
+    pixels = int(size[0]) * int(size[1])
+    if per_pass * pixels >= 2**32:
+        where = '--spp' if spp is not None else "the scene's sample_count"
+        raise RenderError(f'{where} {total} is too many for one image of {size[0]}x{size[1]}: a '
+                          f'pass of {per_pass} samples per pixel needs {per_pass * pixels} '
+                          f'samples at once, and Dr.Jit renders at most 2^32 - 1')
     if hasattr(integrator, 'set_total_spp'):
         integrator.set_total_spp(total)
     acc = None
     t_start = time.perf_counter()
     t_first = None
-    for i in range(passes):
-        img = np.array(mi.render(scene, spp=per_pass, seed=i), dtype=np.float64)
-        if t_first is None:
-            t_first = time.perf_counter() - t_start
-        acc = img if acc is None else acc + img
-        if progress:
-            stream.write(_bar(i + 1, passes, time.perf_counter() - t_start))
-            stream.flush()
+    try:
+        for i in range(passes):
+            img = np.array(mi.render(scene, spp=per_pass, seed=i), dtype=np.float64)
+            if t_first is None:
+                t_first = time.perf_counter() - t_start
+            acc = img if acc is None else acc + img
+            if progress:
+                stream.write(_bar(i + 1, passes, time.perf_counter() - t_start))
+                stream.flush()
+    except Exception as e:
+        raise RenderError(f'rendering failed: {error_line(e)}') from None
+    finally:
+        if hasattr(integrator, 'set_total_spp'):
+            integrator.set_total_spp(None)
     if progress:
         stream.write('\n')
     image = (acc / passes).astype(np.float32)
     t_render = time.perf_counter() - t_start
     bad = int((~np.isfinite(image)).sum())
-    if hasattr(integrator, 'set_total_spp'):
-        integrator.set_total_spp(None)
 
     from .outputs import write_exr, write_png
     names = None
@@ -112,8 +281,11 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
         aovs = list(integrator.aov_names()) if hasattr(integrator, 'aov_names') else []
         alpha = ['A'] if image.shape[2] - 3 - len(aovs) == 1 else []
         names = ['R', 'G', 'B'] + alpha + aovs
-    write_exr(exr_path, image, names)
-    write_png(png_path, image[..., :3] if image.ndim == 3 else image)
+    try:
+        write_exr(exr_path, image, names)
+        write_png(png_path, image[..., :3] if image.ndim == 3 else image)
+    except Exception as e:
+        raise RenderError(f'writing the image failed: {error_line(e)}') from None
     info = dict(scene=scene_path, exr=exr_path, png=png_path, spp=total, passes=passes,
                 load_s=t_load, first_pass_s=t_first, render_s=t_render, nonfinite=bad,
                 shape=tuple(image.shape), variant=variant)

@@ -11,6 +11,8 @@ footprint); ``none`` always sums every octave, so the benefit of the clamp can b
 
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
@@ -18,6 +20,9 @@ from .mapping import mapping_3d
 from .texture import PbrtTexture
 
 NOISE_AAMODES = ('clamp', 'none')
+
+#: roughness^octaves at most this: the octave weights (and their sums) stay finite in float32
+MAX_OCTAVE_WEIGHT = 1e30
 
 
 class NoiseTexture(PbrtTexture):
@@ -29,6 +34,14 @@ class NoiseTexture(PbrtTexture):
         self.mapping = mapping_3d(p)
         self.octaves = p.int('octaves', self.OCTAVES, lo=0, hi=30) if self.OCTAVES else None
         self.roughness = p.float('roughness', self.ROUGHNESS, lo=0.0) if self.ROUGHNESS else None
+        if self.roughness and self.octaves and \
+                self.octaves * math.log10(self.roughness) > math.log10(MAX_OCTAVE_WEIGHT):
+            largest = MAX_OCTAVE_WEIGHT ** (1.0 / self.octaves)
+            weight = self.octaves * math.log10(self.roughness)       # log10 of roughness^octaves
+            raise p.error('roughness', f'{self.roughness:g} with {self.octaves} octaves weights '
+                                       f'the last octave by roughness^octaves = 1e+{weight:.0f}, '
+                                       f'which overflows float32 sums; accepted for '
+                                       f'{self.octaves} octaves: roughness <= {largest:.6g}')
         self.antialias = p.enum('aamode', 'clamp', NOISE_AAMODES) == 'clamp'
         self.configure_more(p)
         for name in ('octaves', 'roughness'):

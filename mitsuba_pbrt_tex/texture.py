@@ -122,8 +122,9 @@ class PbrtTexture:
     def configure(self, p: Params) -> None:
         """Read parameters and build library objects (override)."""
 
-    def nested_texture(self, p: Params, name: str, default: float) -> mi.Texture:
-        tex = p.texture(name, default)
+    def nested_texture(self, p: Params, name: str, default: float, *,
+                       float_only: bool = False) -> mi.Texture:
+        tex = p.texture(name, default, float_only=float_only)
         self._nested[name] = tex
         return tex
 

@@ -9,12 +9,13 @@
 | (2D mapping) | | | mapping parameters, see the mapping table | no |
 
 ``(1-s)(1-t)·v00 + (1-s)t·v01 + s(1-t)·v10 + st·v11``; no wrapping, so it extrapolates outside
-[0,1]² (as pbrt).
+[0,1]² (as pbrt). NaN coordinates count as 0 and s, t are clamped to ±1e8 (pbrt gives NaN/inf for
+NaN/inf/1e30 uv, e.g. from an OBJ's bad ``vt`` entries), so the value is always finite.
 """
 
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.mapping import mapping_2d
+from mitsuba_pbrt_tex.mapping import finite_st, mapping_2d
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
 
 
@@ -28,11 +29,15 @@ class Plugin(PbrtTexture):
         self.describe('mapping', self.mapping.describe())
 
     def evaluate(self, si, kind, active):
-        st = self.mapping.map(self.context(si)).st
+        st = finite_st(self.mapping.map(self.context(si)).st)
         s, t = st.x, st.y
         v = {n: self.nested_eval(n, si, kind, active) for n in ('v00', 'v01', 'v10', 'v11')}
-        return ((1 - s) * (1 - t) * v['v00'] + (1 - s) * t * v['v01']
-                + s * (1 - t) * v['v10'] + s * t * v['v11'])
+        # pbrt's (1-s)(1-t)·v00 + (1-s)t·v01 + s(1-t)·v10 + st·v11 as two lerps of the form
+        # a + x·(b - a): the same value, without products s·t that overflow or cancel far
+        # outside [0, 1]² (at s = t = 1e8 the expanded sum loses every digit)
+        a = v['v00'] + t * (v['v01'] - v['v00'])
+        b = v['v10'] + t * (v['v11'] - v['v10'])
+        return a + s * (b - a)
 
     def mean(self):
         return mi.Float(0.25 * sum(nested_mean(self._nested[n]) for n in ('v00', 'v01', 'v10', 'v11')))

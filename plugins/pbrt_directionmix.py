@@ -5,7 +5,7 @@
 | tex1 | float, rgb, texture | 0 | the value where the normal is parallel to dir | yes |
 | tex2 | float, rgb, texture | 1 | the value where the normal is perpendicular to dir | yes |
 | dir | vector | (0,1,0) | the direction, in texture space | no |
-| to_world | transform | identity | texture space → world (pbrt's CTM); dir is transformed by it | no |
+| to_world | transform | identity | texture space → world (pbrt's CTM); dir is transformed by it; must be invertible (see Mappings) | no |
 
 ``amount = |n · normalize(to_world(dir))|`` with the geometric normal n, then
 ``amount·tex1 + (1 - amount)·tex2`` (note: tex1 is weighted by amount, as in pbrt-v4).
@@ -24,7 +24,7 @@ class Plugin(PbrtTexture):
         self.nested_texture(p, 'tex1', 0.0)
         self.nested_texture(p, 'tex2', 1.0)
         d = p.vector('dir', (0, 1, 0))
-        to_world = p.transform('to_world')
+        to_world = p.transform('to_world', invertible=True)
         if to_world is not None:
             d = to_world @ d
         if dr.norm(d) == 0:
@@ -33,7 +33,7 @@ class Plugin(PbrtTexture):
         self.describe('dir', list(self.dir))
 
     def evaluate(self, si, kind, active):
-        amount = dr.abs(dr.dot(mi.Vector3f(si.n), mi.Vector3f(self.dir)))
+        amount = dr.abs(dr.dot(mi.Vector3f(self.context(si).n), mi.Vector3f(self.dir)))
         use1, use2 = amount != 0, amount != 1
         t1 = self.nested_eval('tex1', si, kind, active & use1)
         t2 = self.nested_eval('tex2', si, kind, active & use2)

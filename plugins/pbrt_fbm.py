@@ -3,7 +3,7 @@
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
 | octaves | integer | 8 | maximum number of octaves (0–30) | no |
-| roughness | float | 0.5 | ω, the weight ratio between successive octaves (≥ 0) | no |
+| roughness | float | 0.5 | ω, the weight ratio between successive octaves (≥ 0; roughness^octaves ≤ 1e30) | no |
 | aamode | string | clamp | `clamp` (pbrt: octaves from the footprint) or `none` (all octaves) | no |
 | (3D mapping) | | | the texture-space transform, see the mapping table | no |
 

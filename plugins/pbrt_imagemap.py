@@ -7,7 +7,7 @@ pbrt-v4's filters (pbrt section 10.4).
 |---|---|---|---|---|
 | filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
 | bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
-| data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear (runtime only) | yes |
+| data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear float32 (runtime only; integer tensors are refused; ``params['...data']`` is this linear tensor for every source, where ``bitmap`` exposes 8-bit images as uint8 sRGB codes) | yes |
 | filter | string | bilinear | `point`, `bilinear`, `trilinear`, `ewa` or `box` (exact average over the footprint; not with wrap `octahedralsphere`) | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
@@ -21,7 +21,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | trilinearwidth | string | v3 | footprint width of point/bilinear/trilinear: `v3` = max abs derivative (pbrt-v3), `v4` = twice that (pbrt-v4) | no |
 | format | string | auto | Mitsuba ``bitmap`` storage option, accepted for drop-in use; storage is always float32 | no |
 | accel | boolean | true | Mitsuba ``bitmap`` option, accepted for drop-in use; no effect | no |
-| (2D mapping) | | | mapping parameters (``to_uv`` included), see the mapping table | no |
+| (2D mapping) | | | mapping parameters (``to_uv`` included; with the `uv` mapping ``to_uv`` is in ``mi.traverse`` as with ``bitmap``), see the mapping table | no |
 
 Exactly one of ``filename``, ``bitmap``, ``data``. A pbrt name and its ``bitmap`` alias together
 are an error.
@@ -32,16 +32,23 @@ top), texel centres at ``((i + 0.5)/W, (j + 0.5)/H)``, no flip. pbrt-v4 instead 
 anisotropic EWA footprints; we do not flip, so nothing needs negating (Mitsuba's OBJ loader already
 flips v, so images appear upright on OBJ meshes).
 
-Channels: 1-channel images give grey colours and their value as float; RGB images give colours,
-and their luminance as float (``eval_1``, as ``bitmap``). Alpha is dropped. ``invert`` clamps at 0
-like pbrt; otherwise values are not clamped (parity with ``bitmap``, negative EXR texels survive).
+Channels: 1-channel images give grey colours (``eval``, and ``eval_3``, where ``bitmap`` raises)
+and their value as float; RGB images give colours, and their luminance as float (``eval_1``, as
+``bitmap``). Alpha is dropped. ``invert`` clamps at 0 like pbrt; otherwise values are not clamped
+(parity with ``bitmap``, negative EXR texels survive).
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
 pbrt-v4 does. Under Mitsuba's own integrators the footprint is always 0 (they compute no texture
-differentials), so they behave exactly as ``bitmap`` ``nearest``/``bilinear`` and their MIP pyramid
-is never built; ``pbrt_path`` (or calling ``tex.prepare_differentials()``) builds it.
-``trilinear`` and ``ewa`` build it at once. With zero differentials every filter is a bilinear
-lookup at level 0 (``point``: the nearest texel).
+differentials), so they behave exactly as ``bitmap`` ``nearest``/``bilinear`` and their pyramid
+holds level 0 alone; ``pbrt_path`` (or calling ``tex.prepare_differentials()``) builds the other
+levels, and so does ``params.update()`` once gradients are enabled on ``data``. ``trilinear`` and
+``ewa`` build every level at once. With zero differentials every filter is a bilinear lookup at
+level 0 (``point``: the nearest texel).
+
+Storage: the texture holds ``data`` (the tensor ``traverse`` exposes) and its pyramid, one value
+built from it by :func:`~mitsuba_pbrt_tex.mipmap.build_pyramid` (level 0 RGBA-padded in the same
+buffer as the other levels). Textures of the same file share the file's cached pyramid until
+their ``data`` is updated.
 
 ``box``: the exact area average of the bilinear reconstruction over the footprint parallelogram
 (one pixel around the lookup: ``st ± dst/dx/2 ± dst/dy/2``), with no minimum width under
@@ -64,11 +71,25 @@ lookups``). Batches under 16384 lookups, batches with fewer than a quarter of th
 levels of 8 MB or more, batches already in coherent order, and lookups traced inside a symbolic
 loop or call (a render's kernel) run in the order given. See :mod:`mitsuba_pbrt_tex.lookup_order`.
 
+Emitters and light tracing (the rest of ``bitmap``'s interface): ``sample_position`` /
+``pdf_position`` importance-sample uv positions for area emitters and projectors, with a density
+exactly proportional to the zero-footprint lookup for every filter and wrap mode, carried through
+uv flips, 90° rotations and integer tilings (other mappings: uniform, with a warning); the tables
+are built the first time an emitter asks and again after ``data``, ``to_uv`` (or, with
+``invert``, ``scale``) change. See :mod:`mitsuba_pbrt_tex.sampling`. ``sample_spectrum`` returns
+the value and no wavelengths (RGB and mono variants, as ``bitmap``), which ``ptracer`` and the
+emitters' ``sample_ray`` need; ``pdf_spectrum`` returns empty wavelengths. ``to_uv`` written
+through ``params`` rebuilds the mapping. A bare ``mi.SurfaceInteraction3f()`` with only ``uv``
+set is evaluated with zero differentials.
+
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
-inside the AD graph by ``parameters_changed`` (``params.update()``), so gradients reach base texels
-through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
+inside the AD graph by ``parameters_changed`` (``params.update()``) — also when it is built lazily
+during a render — so gradients reach base texels through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
 reconstruction at the selected level(s).
 """
+
+import math
+import threading
 
 import drjit as dr
 import mitsuba as mi
@@ -77,15 +98,27 @@ from mitsuba_pbrt_tex import pixel
 from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
-from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, decode_bitmap, load_image,
-                                    parse_encoding)
+from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
+                                    parse_encoding, release_build_temporaries, warn_clamped)
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, Pyramid, build_pyramid
 from mitsuba_pbrt_tex.params import PluginError
+from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
+                                       uv_axes)
 from mitsuba_pbrt_tex.texture import PbrtTexture
 from mitsuba_pbrt_tex.wrap import WRAP_MODES
 
 FORMATS = ('auto', 'variant', 'float16', 'fp16', 'uint8')
+
+
+def integer_data_message(value) -> str:
+    shape = tuple(getattr(value, 'shape', ()))
+    return (f'got an integer tensor ({type(value).__name__} of shape {shape}); accepted: a '
+            f'TensorXf of linear float32 values, shape (H, W, 1) or (H, W, 3). Mitsuba\'s bitmap '
+            f'stores 8-bit images as uint8 sRGB codes, pbrt_imagemap as linear floats: decode '
+            f'codes c with c/255 (raw) or the sRGB curve, e.g. '
+            f'mi.TensorXf(mi.Bitmap(...).convert(component_format=mi.Struct.Type.Float32, '
+            f'srgb_gamma=False))')
 
 
 class Plugin(PbrtTexture):
@@ -103,12 +136,14 @@ class Plugin(PbrtTexture):
             raise p.error('filter', 'value "box" does not support wrap "octahedralsphere" (its '
                                     'wrap couples the axes); accepted wraps with "box": '
                                     + ', '.join(BOX_WRAPS))
-        self.scale = self.jit_value('scale', p.float('scale', 1.0))
+        self._scale_value = p.float('scale', 1.0)
+        self.scale = self.jit_value('scale', self._scale_value)
         self.invert = p.bool('invert', False)
         self.width_convention = p.enum('trilinearwidth', 'v3', WIDTH_CONVENTIONS)
         p.enum('format', 'auto', FORMATS)
         p.bool('accel', True)
         self.mapping = mapping_2d(p)
+        self._sampler, self._sampler_lock = None, threading.Lock()    # built when an emitter asks
         encoding = self._encoding(p)
         self._load(p, encoding)
         self.describe('source', self.source)
@@ -172,6 +207,8 @@ class Plugin(PbrtTexture):
             raise PluginError(f'{self.NAME}: parameter "{param}": {e}') from None
 
     def _checked_tensor(self, value, p):
+        if dr.is_tensor_v(value) and dr.is_integral_v(value):
+            raise p.error('data', integer_data_message(value))
         if not isinstance(value, mi.TensorXf) or len(value.shape) != 3 or value.shape[2] not in (1, 3) \
                 or min(value.shape[:2]) < 1:
             shape = getattr(value, 'shape', None)
@@ -179,11 +216,20 @@ class Plugin(PbrtTexture):
                                   f'{type(value).__name__}' + (f' of shape {tuple(shape)}'
                                                                if shape is not None else ''))
         dr.eval(value)      # a lazy tensor from another thread must not be extended on this one
-        bad = int(dr.count(~dr.isfinite(value.array))[0])
-        if bad:
-            value = mi.TensorXf(dr.select(dr.isfinite(value.array), value.array, 0), value.shape)
-            self._warn_nonfinite(bad)
-        return value
+        return self._finite_texels(value)
+
+    def _finite_texels(self, value):
+        """``value`` with non-finite texels replaced by 0 and others clamped to ±TEXEL_LIMIT
+        (with warnings giving their counts), as for image files."""
+        x = value.array
+        if not int(dr.count(~(dr.abs(x) <= TEXEL_LIMIT))[0]):       # NaN compares false
+            return value
+        bad = int(dr.count(~dr.isfinite(x))[0])
+        big = int(dr.count(dr.isfinite(x) & (dr.abs(x) > TEXEL_LIMIT))[0])
+        x = dr.select(dr.isfinite(x), dr.clip(x, -TEXEL_LIMIT, TEXEL_LIMIT), 0)
+        self._warn_nonfinite(bad)
+        warn_clamped(big)
+        return mi.TensorXf(x, value.shape)
 
     def _warn_nonfinite(self, count):
         if count:
@@ -194,11 +240,13 @@ class Plugin(PbrtTexture):
         """The pyramid of ``self.data`` (every level, or level 0 alone): the file's shared one
         while the texels are still the file's, else built from the tensor — inside the AD graph
         even during a render's primal pass (which suspends gradients), so gradients enabled on
-        the tensor reach every level."""
+        the tensor reach every level. Large builds give their temporaries back."""
         if self._shared is not None:
             return self._shared.pyramid(levels)
         with dr.resume_grad():
-            return build_pyramid(self.data, levels)
+            pyramid = build_pyramid(self.data, levels)
+        release_build_temporaries(pyramid)
+        return pyramid
 
     def _sync_box_tables(self):
         """``box`` only: (re)build the prefix tables of the current pyramid — one explicit pure
@@ -288,7 +336,9 @@ class Plugin(PbrtTexture):
         values = texels * self.scale
         if self.invert:
             values = dr.maximum(0, 1 - values)
-        return dr.mean(values)
+        # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
+        # (3.4e38) must not overflow the sum of up to 2^40 texels
+        return dr.mean(values * 2.0**-40) * 2.0**40
 
     def resolution(self):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
@@ -301,14 +351,27 @@ class Plugin(PbrtTexture):
     def traverse(self, cb):
         cb.put('data', self.data, mi.ParamFlags.Differentiable)
         cb.put('scale', self.scale, mi.ParamFlags.Differentiable)
+        if self.mapping.name == 'uv':
+            if getattr(self, '_to_uv', None) is None:
+                self._to_uv = self.mapping.to_uv_3x3()
+            cb.put('to_uv', self._to_uv, mi.ParamFlags.NonDifferentiable)
 
     def on_parameters_changed(self, keys):
+        if (not keys or 'to_uv' in keys) and getattr(self, '_to_uv', None) is not None:
+            self._set_to_uv(self._to_uv)
+        if self.invert and (not keys or 'scale' in keys):
+            # only invert makes the sampling density depend on the scale (read now, outside
+            # any kernel being traced)
+            self._scale_value = float(dr.detach(self.scale)[0])
+        if not keys or {'data', 'scale', 'to_uv'} & set(keys):
+            self._sampler = None            # rebuilt when an emitter next asks
         if keys and 'data' not in keys:
             return
         t = self.data
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
             raise PluginError(f'{self.NAME}: parameter "data": expected shape (H, W, 1) or '
                               f'(H, W, 3), got {tuple(t.shape)}')
+        self._check_new_texels()
         self._shared = None
         # Texels being differentiated get every level now: forward mode propagates the input's
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
@@ -316,3 +379,89 @@ class Plugin(PbrtTexture):
         self.pyramid = self._build(self.pyramid.complete or dr.grad_enabled(self.data))
         self._sync_box_tables()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
+
+    def _check_new_texels(self):
+        """Warnings about texels written through ``params`` (the pyramid replaces non-finite
+        texels by 0 and clamps the others to ±TEXEL_LIMIT in any case, as at construction):
+        their counts, and a warning when they look like ``bitmap``'s 8-bit codes.
+
+        Mitsuba's ``SceneParameters`` converts whatever is written into ``params['...data']``
+        (a TensorXu8 of codes, a numpy uint8 array) to the parameter's type, TensorXf, before the
+        plugin is told, so an integer tensor cannot be refused here as it is at construction.
+        Texels that are all integers in [0, 255] with some above 1 are what such a write
+        leaves; linear radiance can be like that too, so this warns rather than refuses. Skipped
+        for tensors with gradients (an optimiser's step), where reading them back would cost a
+        synchronisation per step (and could not be recorded by ``dr.freeze``).
+        """
+        if dr.grad_enabled(self.data):
+            return
+        v = self.data.array                 # reductions on the device: no copy to the host
+        finite = dr.isfinite(v)
+        counts = [dr.count(~finite), dr.count(finite & (dr.abs(v) > TEXEL_LIMIT))]
+        hi, lo = dr.max(v), dr.min(v)
+        dr.eval(counts, hi, lo)
+        self._warn_nonfinite(int(counts[0][0]))
+        warn_clamped(int(counts[1][0]))
+        hi, lo = float(hi[0]), float(lo[0])
+        if 1 < hi <= 255 and lo >= 0 and bool(dr.all(dr.round(v) == v)):
+            mi.Log(mi.LogLevel.Warn,
+                   f'{self.NAME}: parameter "data": the new texels are all integers in [0, 255] '
+                   f'(max {hi:g}). If they are 8-bit codes as Mitsuba\'s bitmap stores them: '
+                   f'{integer_data_message(self.data).split("; accepted: ")[1]}')
+
+    # ------------------------------------------------------------------ emitters, light tracing
+    def _set_to_uv(self, to_uv):
+        """Rebuild the uv mapping after ``params['...to_uv']`` changed (as ``bitmap``)."""
+        if not isinstance(to_uv, mi.ScalarAffineTransform3f):
+            raise PluginError(f'{self.NAME}: parameter "to_uv": expected a '
+                              f'mi.ScalarAffineTransform3f (as bitmap), got {type(to_uv).__name__}')
+        m = to_uv.matrix
+        values = [float(m[i][j]) for i in range(3) for j in range(3)]
+        if not all(math.isfinite(x) for x in values) or values[6:] != [0.0, 0.0, 1.0]:
+            raise PluginError(f'{self.NAME}: parameter "to_uv": expected a finite affine 2D '
+                              f'transform (last row 0, 0, 1), got the matrix {values}')
+        self.mapping = self.mapping.with_to_uv(to_uv)
+        self.describe('mapping', self.mapping.describe())
+
+    def _position_sampler(self) -> PositionSampler:
+        sampler = self._sampler
+        if sampler is None:
+            with self._sampler_lock:
+                if self._sampler is None:
+                    self._sampler = self._build_position_sampler()
+                sampler = self._sampler
+        return sampler
+
+    def _build_position_sampler(self) -> PositionSampler:
+        axes, why = uv_axes(self.mapping, self.wrap)
+        if axes is None:
+            mi.Log(mi.LogLevel.Warn,
+                   f'{self.NAME}: parameters "mapping"/"to_uv"/"uscale"/"vscale"/"udelta"/'
+                   f'"vdelta": position sampling (an area emitter\'s or projector\'s radiance) '
+                   f'is not proportional to the texture with {why}; positions are sampled '
+                   f'uniformly in uv instead (unbiased, noisier)')
+            return PositionSampler(None, None)
+        # the texels as the user's tensor holds them (evaluated: reading them is allowed while
+        # Mitsuba traces a kernel, which is when an emitter first asks)
+        texels = dr.detach(self.data).numpy()
+        weights = texel_weights(texels, self._scale_value if self.invert else 1.0, self.invert)
+        return PositionSampler(TextureSpaceSampler(weights, self.filter_name == 'point',
+                                                   self.wrap), axes)
+
+    def sample_position(self, sample, active=True):
+        """A uv position with density ∝ the texture's (zero-footprint) value, and that density
+        per unit uv area (see :mod:`mitsuba_pbrt_tex.sampling`)."""
+        return self._position_sampler().sample(mi.Point2f(sample), mi.Bool(active))
+
+    def pdf_position(self, p, active=True):
+        return self._position_sampler().pdf(mi.Point2f(p), mi.Bool(active))
+
+    def sample_spectrum(self, si, sample, active=True):
+        """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as
+        ``bitmap`` (light tracing and emitters' ``sample_ray`` call this)."""
+        return type(si.wavelengths)(), self.eval(si, active)
+
+    def pdf_spectrum(self, si, active=True):
+        """RGB and mono variants: no wavelengths are sampled, so the density is empty
+        (``bitmap`` raises NotImplementedError here)."""
+        return type(si.wavelengths)()

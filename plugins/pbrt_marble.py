@@ -3,7 +3,7 @@
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
 | octaves | integer | 8 | maximum number of FBm octaves (0–30) | no |
-| roughness | float | 0.5 | ω of the FBm (≥ 0) | no |
+| roughness | float | 0.5 | ω of the FBm (≥ 0; roughness^octaves ≤ 1e30) | no |
 | scale | float | 1 | frequency: p is multiplied by it | no |
 | variation | float | 0.2 | amplitude of the FBm perturbation | no |
 | aamode | string | clamp | `clamp` (pbrt) or `none` (all octaves) | no |

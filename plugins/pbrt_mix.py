@@ -4,7 +4,7 @@
 |---|---|---|---|---|
 | tex1 | float, rgb, texture | 0 | the value where amount = 0 | yes |
 | tex2 | float, rgb, texture | 1 | the value where amount = 1 | yes |
-| amount | float, texture | 0.5 | the blend weight (a float texture; not clamped) | yes |
+| amount | float, texture | 0.5 | the blend weight (a float texture, so an rgb value is refused; not clamped) | yes |
 
 ``(1 - amount)·tex1 + amount·tex2``; like pbrt-v4, ``tex1`` is not evaluated where amount = 1 and
 ``tex2`` not where amount = 0.
@@ -22,7 +22,7 @@ class Plugin(PbrtTexture):
     def configure(self, p):
         self.nested_texture(p, 'tex1', 0.0)
         self.nested_texture(p, 'tex2', 1.0)
-        self.nested_texture(p, 'amount', 0.5)
+        self.nested_texture(p, 'amount', 0.5, float_only=True)
 
     def evaluate(self, si, kind, active):
         amount = self.nested_eval('amount', si, FLOAT, active)

@@ -9,8 +9,8 @@ hit before its BSDF is evaluated or sampled.
 
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
-| max_depth | integer | 6 | longest path depth (-1: unbounded) | no |
-| rr_depth | integer | 5 | depth at which Russian roulette starts | no |
+| max_depth | integer | 6 | longest path depth (-1: unbounded; at most 2^31 - 1) | no |
+| rr_depth | integer | 5 | depth at which Russian roulette starts (1 to 2^31 - 1) | no |
 | hide_emitters | boolean | false | hide directly visible emitters | no |
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
@@ -81,6 +81,9 @@ from mitsuba_pbrt_tex.params import Params, PluginError
 from mitsuba_pbrt_tex.raydiff import RayDiff
 from mitsuba_pbrt_tex.texture import uses_differentials
 
+#: depths are UInt32 in the loop and int32 in Mitsuba's C++ (-1 means unbounded)
+MAX_DEPTH = 2**31 - 1
+
 
 def _prb_helpers():
     """Mitsuba's own AD-integrator helpers (imported when a supported variant is set)."""
@@ -102,15 +105,16 @@ class Plugin:
         """Validate what Mitsuba's base class reads itself, with our error messages."""
         variants.require_supported(Plugin.NAME)
         p = Params(Plugin.NAME, props)
-        p.int('max_depth', 6, lo=-1)
-        p.int('rr_depth', 5, lo=1)
+        p.int('max_depth', 6, lo=-1, hi=MAX_DEPTH)
+        p.int('rr_depth', 5, lo=1, hi=MAX_DEPTH)
+        p.bool('hide_emitters', False)
 
     def setup(self, props):
         variants.require_supported(self.NAME)
         p = Params(self.NAME, props)
-        max_depth = p.int('max_depth', 6, lo=-1)
+        max_depth = p.int('max_depth', 6, lo=-1, hi=MAX_DEPTH)
         self.max_depth = 0xffffffff if max_depth == -1 else max_depth
-        self.rr_depth = p.int('rr_depth', 5, lo=1)
+        self.rr_depth = p.int('rr_depth', 5, lo=1, hi=MAX_DEPTH)
         self.hide_emitters = p.bool('hide_emitters', False)
         self.texture_differentials = p.bool('texture_differentials', True)
         self.spp_mode = self._spp_mode(p)
@@ -343,10 +347,18 @@ class Plugin:
             if dr.hint(want, mode='scalar'):
                 valid = si.is_valid()
                 p_hit, n_hit = dr.detach(si.p), dr.detach(si.n)
-                dpdx, dpdy, ok = diff.footprint(p_hit, n_hit, valid)
-                ax, ay = camera.dp_dxy(p_hit, n_hit, scale, valid & ~ok)
-                dpdx = dr.select(ok, dpdx, ax)
-                dpdy = dr.select(ok, dpdy, ay)
+                # each source as a symbolic conditional: a packet of lanes none of which needs
+                # it skips it (camera rays have a differential; diffuse bounces do not)
+                use = valid & diff.valid
+                dpdx, dpdy, ok = dr.if_stmt(
+                    args=(p_hit, n_hit, use), cond=use, true_fn=diff.footprint,
+                    false_fn=lambda p, n, m: (mi.Vector3f(0), mi.Vector3f(0), mi.Bool(False)),
+                    label='pbrt_path: differential')
+                use = valid & ~ok
+                dpdx, dpdy = dr.if_stmt(
+                    args=(p_hit, n_hit, use, dpdx, dpdy), cond=use,
+                    true_fn=lambda p, n, m, x, y: camera.dp_dxy(p, n, scale, m),
+                    false_fn=lambda p, n, m, x, y: (x, y), label='pbrt_path: camera footprint')
                 duv_dx, duv_dy = raydiff.uv_partials(dr.detach(si.dp_du), dr.detach(si.dp_dv),
                                                      dpdx, dpdy)
                 si.duv_dx = dr.select(valid, duv_dx, 0)

@@ -3,7 +3,7 @@
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
 | tex | float, rgb, texture | 1 | the texture to scale | yes |
-| scale | float, texture | 1 | the factor (evaluated as a float texture) | yes |
+| scale | float, texture | 1 | the factor (evaluated as a float texture, so an rgb value is refused) | yes |
 
 Where ``scale`` is 0 the result is 0 and ``tex`` is not evaluated (pbrt-v4), so an infinite or NaN
 ``tex`` there cannot leak into the image.
@@ -20,7 +20,7 @@ class Plugin(PbrtTexture):
 
     def configure(self, p):
         self.nested_texture(p, 'tex', 1.0)
-        self.nested_texture(p, 'scale', 1.0)
+        self.nested_texture(p, 'scale', 1.0, float_only=True)
 
     def evaluate(self, si, kind, active):
         sc = self.nested_eval('scale', si, FLOAT, active)

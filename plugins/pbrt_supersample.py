@@ -3,14 +3,15 @@
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
 | texture | texture | — | the texture to antialias (ours or any Mitsuba texture) | yes |
-| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata) | no |
+| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata), at most 65536; they spread over at most 1024 texture units per differential | no |
 
 The footprint is the parallelogram spanned by the texture differentials: with offsets
 ``(a, b) ∈ [-1/2, 1/2]²`` the wrapped texture is evaluated at ``uv + a·duv/dx + b·duv/dy`` and
 ``p + a·dp/dx + b·dp/dy`` at the centre of each of the n×n strata, with differentials shrunk to
 the stratum (``duv/n``), and the results are averaged — a box filter over the pixel, computed by
 the midpoint rule. Deterministic; with zero differentials (Mitsuba's integrators) it equals the
-wrapped texture.
+wrapped texture. Each differential component is limited to ±1024 texture units (non-finite ones
+count as 0), so the offsets stay where nested textures such as Mitsuba's ``bitmap`` are defined.
 """
 
 import math
@@ -18,8 +19,22 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.differentials import sanitize_partial
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
+
+#: 256 x 256 lookups per evaluation at most (the loop's counter and n² must stay far inside
+#: UInt32; more is never useful for one lookup)
+MAX_SAMPLES = 65536
+
+#: The sub-samples spread over at most this many texture units per differential: Mitsuba's
+#: ``bitmap`` is undefined where uv·resolution overflows an int32 (it returned NaN and 4.6e11
+#: around uv ≈ 1e8), and a footprint of 1024 units already averages over 1024 periods of any
+#: repeated texture.
+MAX_FOOTPRINT = 1024.0
+
+
+def _footprint(x):
+    """A (sanitized) uv partial limited to ±MAX_FOOTPRINT."""
+    return dr.clip(x, -MAX_FOOTPRINT, MAX_FOOTPRINT)
 
 
 class Plugin(PbrtTexture):
@@ -29,7 +44,7 @@ class Plugin(PbrtTexture):
         if not p.has('texture'):
             raise p.error('texture', 'is required (the texture to supersample)')
         self.nested_texture(p, 'texture', 0.0)
-        self.samples = p.int('samples', 16, lo=1)
+        self.samples = p.int('samples', 16, lo=1, hi=MAX_SAMPLES)
         self.n = int(round(math.sqrt(self.samples)))
         if self.n * self.n != self.samples:
             raise p.error('samples', f'must be a perfect square (1, 4, 9, 16, 25, ...), got '
@@ -39,11 +54,10 @@ class Plugin(PbrtTexture):
     def evaluate(self, si, kind, active):
         n = self.n
         tex = self._nested['texture']
-        du_dx, dv_dx = sanitize_partial(si.duv_dx.x), sanitize_partial(si.duv_dx.y)
-        du_dy, dv_dy = sanitize_partial(si.duv_dy.x), sanitize_partial(si.duv_dy.y)
-        duv_dx, duv_dy = mi.Vector2f(du_dx, dv_dx), mi.Vector2f(du_dy, dv_dy)
-        dp_dx = si.dp_du * du_dx + si.dp_dv * dv_dx
-        dp_dy = si.dp_du * du_dy + si.dp_dv * dv_dy
+        ctx = self.context(si)          # sanitized partials; empty fields of a bare si are 0
+        duv_dx = mi.Vector2f(_footprint(ctx.dudx), _footprint(ctx.dvdx))
+        duv_dy = mi.Vector2f(_footprint(ctx.dudy), _footprint(ctx.dvdy))
+        dp_dx, dp_dy, uv, p = ctx.dpdx, ctx.dpdy, ctx.uv, ctx.p
 
         def cond(k, acc):
             return k < n * n
@@ -52,8 +66,8 @@ class Plugin(PbrtTexture):
             a = (mi.Float(k % n) + 0.5) / n - 0.5
             b = (mi.Float(k // n) + 0.5) / n - 0.5
             sub = mi.SurfaceInteraction3f(si)
-            sub.uv = si.uv + a * duv_dx + b * duv_dy
-            sub.p = si.p + a * dp_dx + b * dp_dy
+            sub.uv = uv + a * duv_dx + b * duv_dy
+            sub.p = p + a * dp_dx + b * dp_dy
             sub.duv_dx = duv_dx / n
             sub.duv_dy = duv_dy / n
             return k + 1, acc + kind.nested(tex, sub, active)

@@ -60,8 +60,32 @@ def wrap(i, n, mode):
     raise ValueError(mode)
 
 
+def octahedral(x, y, w, h):
+    """pbrt-v4 ``RemapPixelCoords`` for ``OctahedralSphere``, written per lane in plain Python:
+    an x outside the image mirrors x and flips y; then a y outside mirrors y and flips x. An
+    index still outside after that (more than one image away, or W/H = 1) is clamped — pbrt
+    leaves it undefined, the package documents the clamp."""
+    xs, ys = [], []
+    for a, b in zip(np.ravel(x).tolist(), np.ravel(y).tolist()):
+        if a < 0:
+            a, b = -a, h - 1 - b
+        elif a >= w:
+            a, b = 2 * w - 1 - a, h - 1 - b
+        if b < 0:
+            a, b = w - 1 - a, -b
+        elif b >= h:
+            a, b = w - 1 - a, 2 * h - 1 - b
+        xs.append(min(max(a, 0), w - 1))
+        ys.append(min(max(b, 0), h - 1))
+    shape = np.shape(x)
+    return np.array(xs, np.int64).reshape(shape), np.array(ys, np.int64).reshape(shape)
+
+
 def texel(level, x, y, mode):
     h, w = level.shape[:2]
+    if mode == 'octahedralsphere':
+        xi, yi = octahedral(x, y, w, h)
+        return level[yi, xi]
     xi, vx = wrap(x, w, mode)
     yi, vy = wrap(y, h, mode)
     v = level[yi, xi]

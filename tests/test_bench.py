@@ -91,3 +91,16 @@ def test_integrator_benchmark_runs():
     rows = integrator.run(spp=1, res=(16, 9), repeats=1, out=lambda s: None)
     assert len(rows) == len(integrator.CASES)
     assert all(r['path'] > 0 and r['on'] > 0 and r['off'] > 0 for r in rows)
+
+
+def test_memory_benchmark_reports_peaks_against_bitmap():
+    """``bench memory`` end to end on a small image: peaks of every texture against ``bitmap``
+    from the same run, and the cache left empty after the reloads (sizes are too small here for
+    the ratios to mean much: the benchmark's default is 2048²)."""
+    from mitsuba_pbrt_tex.bench import memory
+    lines = []
+    rows, reload = memory.run(size=256, reloads=2, out=lines.append)
+    assert [r['kind'] for r in rows] == ['bitmap', 'bilinear', 'ewa']
+    assert all(r['peak'] > 0 for r in rows)
+    assert any(line.startswith('| pbrt_imagemap ewa |') and line.endswith('x |') for line in lines)
+    assert reload['entries'] == 0 and len(reload['after']) == 2

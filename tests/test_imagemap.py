@@ -311,6 +311,18 @@ def test_hard_cases_stay_finite_and_in_range(shape, filt, wrap, rng):
     assert out.shape == (n, 3) and np.isfinite(out).all()
     lo = 0.0 if wrap == 'black' else img.min()
     assert (out >= lo - 1e-6).all() and (out <= img.max() + 1e-6).all()
+    # where the value is known: rows 0 (uv (.5, .5), zero footprint) are the level-0 lookup
+    # of the numpy reference (point: the texel containing uv; the others: bilinear; 2e-6 as
+    # the level-0 tests); rows 4 (footprint 1e8 texture widths at uv ±inf) cover the
+    # texture: pbrt's top level, the image mean, with every wrap (2e-6). (Not rows 8: a
+    # 1e-30 minor axis squares to 0 in float32, where pbrt-v4's EWA returns a level-0 lookup.)
+    h, w = shape
+    if filt == 'point':
+        zero = ref.texel(img, np.array([int(0.5 * w)]), np.array([int(0.5 * h)]), wrap)[0]
+    else:
+        zero = ref.bilinear(img, np.array([0.5]), np.array([0.5]), wrap)[0]
+    np.testing.assert_allclose(out[0::10], np.tile(zero, (3, 1)), atol=2e-6)
+    np.testing.assert_allclose(out[4::10], np.tile(img.mean((0, 1)), (3, 1)), atol=2e-6)
 
 
 def test_anisotropy_clamp_widens_minor_axis(rng):
@@ -426,13 +438,50 @@ def test_file_pyramid_shared_and_built_once_across_threads():
 
 
 def test_scene_with_identical_textures_loads_in_parallel():
+    """Eight textures of one file built on Mitsuba's worker threads. The load runs on a daemon
+    thread that must finish within 120 s (it takes < 1 s): a deadlock fails the test instead of
+    hanging the suite. Each loaded texture then equals Mitsuba's ``bitmap`` of the file (zero
+    footprint: level-0 bilinear; ≤ 1e-6 as the parity tests), with its own uscale."""
     path = os.path.join(DATA, 'srgb_11x9.png')
     shapes = {f's{i}': {'type': 'sphere', 'center': [i, 0, 0], 'radius': 0.3,
                         'bsdf': {'type': 'diffuse', 'reflectance': {
                             'type': 'pbrt_imagemap', 'filename': path, 'filter': 'trilinear',
                             'uscale': float(1 + i % 2)}}} for i in range(8)}
-    scene = mi.load_dict({'type': 'scene', **shapes}, parallel=True)
+    out = {}
+
+    def load():
+        try:
+            out['scene'] = mi.load_dict({'type': 'scene', **shapes}, parallel=True)
+        except Exception as e:          # reported below, on the test's thread
+            out['error'] = e
+
+    worker = threading.Thread(target=load, daemon=True)
+    worker.start()
+    worker.join(timeout=120)
+    if worker.is_alive():
+        pytest.fail('parallel scene load did not finish within 120 s (deadlock?)')
+    assert 'error' not in out, out.get('error')
+    scene = out['scene']
     assert len(scene.shapes()) == 8
+    uv = np.random.default_rng(5).uniform(-1, 2, (64, 2))
+    bitmap = mi.load_dict({'type': 'bitmap', 'filename': path})
+    for shape in scene.shapes():
+        reflectance = [c for c in _children(shape.bsdf()) if isinstance(c, mi.Texture)][0]
+        uscale = 1.0 + (int(shape.id()[1:]) % 2)
+        want = A(bitmap.eval(make_si(uv * [uscale, 1.0])))
+        np.testing.assert_allclose(A(reflectance.eval(make_si(uv))), want, atol=1e-6)
+
+
+def _children(obj):
+    """Mitsuba objects directly referenced by ``obj`` (through its traversal)."""
+    found = []
+
+    class Collect(mi.TraversalCallback):
+        def put(self, name, value, flags):
+            if isinstance(value, mi.Object):
+                found.append(value)
+    obj.traverse(Collect())
+    return found
 
 
 
@@ -546,3 +595,157 @@ def test_level_log2_accuracy():
                                rtol=0, atol=2e-6)
     powers = np.arange(-26, 27)
     assert np.array_equal(A(log2_positive(mi.Float((2.0 ** powers).astype(np.float32)))), powers)
+
+
+# ------------------------------------------------------------------------------------ 16-bit, bitmap
+def _texel_centres(w, h):
+    uv = np.stack(np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h), -1)
+    return uv.reshape(-1, 2)
+
+
+@pytest.mark.parametrize('raw', [False, True])
+@pytest.mark.parametrize('source', ['file', 'bitmap'])
+def test_16bit_png_and_bitmap_parameter_match_mitsuba_bitmap(source, raw, rng, tmp_path):
+    """A 16-bit sRGB PNG (a full-range ramp plus noise, so the curve's linear toe and power
+    segment are both sampled), given as a file or as an ``mi.Bitmap`` object, with and without
+    ``raw``: texel centres and random bilinear lookups equal Mitsuba's ``bitmap`` with
+    ``format = variant`` (float32 storage; by default it keeps 16-bit images as half floats,
+    5e-4 relative), which decodes 16-bit sRGB with its own rational approximation of the curve
+    (≤ 4.2e-7 from exact; float32 rounding of the bilinear weights adds ~1e-7): atol 2e-6.
+    Skipping the decode is ≥ 0.1 off."""
+    h, w = 9, 13
+    px = rng.integers(0, 65536, (h, w, 3)).astype(np.uint16)
+    px[0, :, 0] = np.linspace(0, 65535, w).astype(np.uint16)     # dark toe included
+    bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
+    bmp.set_srgb_gamma(True)
+    path = str(tmp_path / 'rgb16.png')
+    bmp.write(path)
+    assert mi.Bitmap(path).component_format() == mi.Struct.Type.UInt16
+    common = {'raw': raw, 'filter_type': 'bilinear'}
+    if source == 'file':
+        theirs = mi.load_dict({'type': 'bitmap', 'filename': path, 'format': 'variant', **common})
+        ours = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, **common})
+    else:
+        theirs = mi.load_dict({'type': 'bitmap', 'bitmap': mi.Bitmap(path), 'format': 'variant', **common})
+        ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': mi.Bitmap(path), **common})
+    uv = np.concatenate([_texel_centres(w, h), rng.uniform(-0.5, 1.5, (300, 2))])
+    si = make_si(uv)
+    want = A(theirs.eval(si))
+    np.testing.assert_allclose(A(ours.eval(si)), want, atol=2e-6)
+    # and the decode is the sRGB curve (or none), checked without Mitsuba at the texel centres
+    v = px.reshape(-1, 3) / 65535.0
+    curve = v if raw else np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(A(ours.eval(make_si(_texel_centres(w, h)))), curve, atol=2e-6)
+
+
+@pytest.mark.parametrize('kind', ['uint8_srgb', 'float32', 'uint8_y'])
+def test_bitmap_parameter_matches_mitsuba_bitmap(kind, rng):
+    """The ``bitmap`` parameter with 8-bit sRGB RGB, float RGB and 8-bit luminance objects:
+    equal to Mitsuba's ``bitmap`` given the same object (≤ 1e-6 as the file parity tests)."""
+    h, w = 6, 10
+    if kind == 'uint8_srgb':
+        bmp = mi.Bitmap(rng.integers(0, 256, (h, w, 3)).astype(np.uint8), mi.Bitmap.PixelFormat.RGB)
+        bmp.set_srgb_gamma(True)
+    elif kind == 'uint8_y':
+        bmp = mi.Bitmap(rng.integers(0, 256, (h, w, 1)).astype(np.uint8), mi.Bitmap.PixelFormat.Y)
+        bmp.set_srgb_gamma(True)
+    else:
+        bmp = mi.Bitmap(rng.random((h, w, 3)).astype(np.float32), mi.Bitmap.PixelFormat.RGB)
+    theirs = mi.load_dict({'type': 'bitmap', 'bitmap': bmp})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp})
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
+    np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
+    np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ eval_1_grad
+@pytest.mark.parametrize('filt,convention', [('trilinear', 'v3'), ('trilinear', 'v4'),
+                                             ('bilinear', 'v3')])
+def test_eval_1_grad_with_footprint_matches_finite_differences(filt, convention, rng):
+    """``eval_1_grad`` with non-zero footprints (what ``bumpmap`` gets under ``pbrt_path``): the
+    central difference of ``eval_1`` in u and v with the footprint held fixed, through a uv
+    mapping with scale and a rotating ``to_uv`` (so the st→uv Jacobian matters). Footprints put
+    the level between 1.2 and 3.8, so the trilinear result blends two levels with a fractional
+    weight, each level with its own texel size. h = 1e-4 in uv (≤ 0.02 texel at level 0);
+    lookups within 0.03 texel of a texel-centre line of any level (where the bilinear gradient
+    jumps) are excluded; the difference of a piecewise-bilinear function there is exact up to
+    float32 rounding of eval_1 (~6e-8 / 2e-4 ≈ 3e-4 absolute): rtol 1e-2, atol 2e-3."""
+    res = 64
+    img = rng.random((res, res, 3))
+    to_uv = mi.ScalarTransform4f().rotate([0, 0, 1], 25)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img.astype(np.float32)),
+                        'filter': filt, 'trilinearwidth': convention, 'uscale': 1.5,
+                        'vscale': 0.75, 'to_uv': to_uv})
+    tex.prepare_differentials()
+    n = 400
+    uv = rng.uniform(0.1, 0.9, (n, 2))
+    factor = 2.0 if convention == 'v4' else 1.0
+    level = rng.uniform(1.2, 3.8, n)
+    width_st = 2.0 ** level / res / factor               # max |d(st)| that selects the level
+    # st derivatives (ds/dx, dt/dx) = (width, 0.3 width), (ds/dy, dt/dy) = (-0.4 w, 0.2 w),
+    # mapped back to uv through the inverse of the mapping's 2×2 matrix
+    M = np.diag([1.5, 0.75]) @ np.array(to_uv.matrix)[:2, :2]
+    Minv = np.linalg.inv(M)
+    dst_x = np.stack([width_st, 0.3 * width_st], 1)
+    dst_y = np.stack([-0.4 * width_st, 0.2 * width_st], 1)
+    d0, d1 = dst_x @ Minv.T, dst_y @ Minv.T
+    h = 1e-4
+
+    def f(shift):
+        return A(tex.eval_1(make_si(uv + shift, d0, d1)))
+
+    fd = np.stack([(f([h, 0]) - f([-h, 0])) / (2 * h), (f([0, h]) - f([0, -h])) / (2 * h)], 1)
+    got = A(tex.eval_1_grad(make_si(uv, d0, d1)))
+    st = uv @ M.T + np.array(to_uv.matrix)[:2, 3] * [1.5, 0.75]
+    ok = np.ones(n, bool)
+    for lv in range(0, 7):
+        size = res >> lv
+        for c in range(2):
+            p = st[:, c] * size - 0.5
+            ok &= np.abs(p - np.round(p)) > 0.03
+    assert ok.sum() > 100
+    np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
+
+
+@pytest.mark.parametrize('convention,factor', [('v3', 1.0), ('v4', 2.0)])
+@pytest.mark.parametrize('filt', ['point', 'bilinear'])
+def test_single_level_filters_select_level_under_anisotropic_footprints(filt, convention, factor,
+                                                                         rng):
+    """Random anisotropic footprints (ratio up to 20, any orientation, either vector the major,
+    widths 0.3–80 texels) on a non-square 48×80 image: pbrt-v4's single-level rule, written here
+    from the text — width = factor·max(|ds/dx|, |dt/dx|, |ds/dy|, |dt/dy|), level
+    floor(log2(width·max(W, H))) clamped to [0, L-1] — then a point (Mitsuba's floor rule) or
+    bilinear lookup at that level of the reference pyramid. Lookups within 1e-4 of a level
+    boundary (float32 log2) are excluded; the rest match to 1e-5 (float32 texel coordinates
+    u·W - 0.5 with |u| ≤ 1.5 carry ~1.5·80·6e-8 ≈ 7e-6 texel of rounding, as in
+    test_zero_differentials_every_filter_is_bilinear_level0). A rule
+    that uses the minor axis, the mean of the axes, or max(W, H) → min, picks other levels."""
+    img = rng.random((48, 80, 3))
+    tex = imagemap(img, filter=filt, trilinearwidth=convention)
+    assert tex.prepare_differentials()
+    n = 500
+    uv = rng.uniform(-0.5, 1.5, (n, 2))
+    major = np.exp(rng.uniform(np.log(0.3), np.log(80), n))
+    ratio = np.exp(rng.uniform(0, np.log(20), n))
+    ang = rng.uniform(0, math.pi, n)
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * (major / 80)[:, None]
+    d1 = np.stack([-np.sin(ang), np.cos(ang)], 1) * (major / ratio / 80)[:, None]
+    swap = rng.random(n) < 0.5
+    d0[swap], d1[swap] = d1[swap].copy(), d0[swap].copy()
+    got = A(tex.eval(make_si(uv, d0, d1)))
+    levels = ref.pyramid(img)
+    width = factor * np.abs(np.concatenate([d0, d1], 1)).max(1)
+    level = np.log2(width * 80)
+    il = np.clip(np.floor(level), 0, len(levels) - 1).astype(int)
+    clear = np.abs(level - np.round(level)) > 1e-4
+    want = np.empty((n, 3))
+    for k in range(n):
+        lv = levels[il[k]]
+        if filt == 'bilinear':
+            want[k] = ref.bilinear(lv, uv[k:k + 1, 0], uv[k:k + 1, 1], 'repeat')[0]
+        else:
+            hh, ww = lv.shape[:2]
+            want[k] = ref.texel(lv, np.floor(uv[k, 0] * ww).astype(int),
+                                np.floor(uv[k, 1] * hh).astype(int), 'repeat')
+    assert clear.mean() > 0.95 and len(set(il[clear])) >= 5
+    np.testing.assert_allclose(got[clear], want[clear], atol=1e-5)

@@ -92,6 +92,35 @@ def test_uv_mapping_composes_to_uv_first(rng):
     dx = np.stack([duv[:, 0], duv[:, 2]], 1) @ lin.T
     np.testing.assert_allclose(A(tc.dsdx), dx[:, 0], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(A(tc.dtdx), dx[:, 1], rtol=1e-5, atol=1e-6)
+    dy = np.stack([duv[:, 1], duv[:, 3]], 1) @ lin.T
+    np.testing.assert_allclose(A(tc.dsdy), dy[:, 0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(A(tc.dtdy), dy[:, 1], rtol=1e-5, atol=1e-6)
+
+
+def test_uv_mapping_derivatives_match_finite_differences_with_shear(rng):
+    """Independent of the matrix bookkeeping above: each of the four derivatives is the central
+    difference of the mapping's own (s, t) when (u, v) moves along (du/dx, dv/dx) or
+    (du/dy, dv/dy), with a to_uv that rotates, shears and scales unequally (so every entry of
+    the 2×2 matrix differs and a swapped partial or entry changes the result). The mapping is
+    affine, so the difference is exact up to float32 rounding of st (|st| ≲ 10, h = 1e-2:
+    ~1e-4 relative); rtol 1e-3."""
+    T = mi.ScalarTransform4f
+    to_uv = (T().translate([0.3, -0.1, 0]) @ T().rotate([0, 0, 1], 35)
+             @ mi.ScalarTransform4f(mi.ScalarMatrix4f([[1, 0.6, 0, 0], [0, 1, 0, 0],
+                                                        [0, 0, 1, 0], [0, 0, 0, 1]]))
+             @ T().scale([1.7, 0.4, 1]))
+    m = UVMapping(2.5, 1.5, 0.2, -0.3, to_uv)
+    n = 32
+    uv = rng.uniform(-1, 2, (n, 2))
+    duv = rng.normal(size=(n, 4))            # (du/dx, du/dy, dv/dx, dv/dy)
+    tc = m.map(ctx_from(uv=uv, duv=duv))
+    h = 1e-2
+    st = lambda x: A(m.map(ctx_from(uv=x)).st)
+    for dirn, got_s, got_t in (([0, 2], tc.dsdx, tc.dtdx), ([1, 3], tc.dsdy, tc.dtdy)):
+        step = duv[:, dirn]
+        fd = (st(uv + h * step) - st(uv - h * step)) / (2 * h)
+        np.testing.assert_allclose(A(got_s), fd[:, 0], rtol=1e-3, atol=1e-3)
+        np.testing.assert_allclose(A(got_t), fd[:, 1], rtol=1e-3, atol=1e-3)
 
 
 # ---------------------------------------------------------------------------------------- spherical

@@ -62,17 +62,23 @@ def test_refraction_differential_matches_finite_differences(eta, rng):
 
 
 def test_pbrt_v4_transmission_formula_is_wrong(rng):
-    """pbrt-v4's -η·dwo instead of -dwo/η: with η = 1.5 the error is far above FD noise."""
+    """pbrt-v4 writes -η·dwo where the derivative of -wo/η is -dwo/η. The package's
+    ``refract_differential`` must agree with finite differences (rtol 2e-3 as above) where
+    pbrt-v4's formula, evaluated here in numpy on the same inputs, is off by more than 0.05 —
+    so the test fails if the package adopts pbrt-v4's term (or any other η-mis-scaled one)."""
     eta = 1.5
     wo, n, dwo, dn, wo_f, n_f = setup(rng, 50)
     wi = refract(wo, n, eta)
     h = 1e-5
     fd = (refract(wo_f(h), n_f(h), eta) - refract(wo_f(-h), n_f(-h), eta)) / (2 * h)
+    got = A(raydiff.refract_differential(V(wo), V(wi), V(n), V(dn), V(dwo), mi.Float(eta))) - wi
+    np.testing.assert_allclose(got, fd, rtol=2e-3, atol=2e-4)
     mu = (wo * n).sum(-1, keepdims=True) / eta - np.abs((wi * n).sum(-1, keepdims=True))
     ddn = (dwo * n).sum(-1, keepdims=True) + (wo * dn).sum(-1, keepdims=True)
     dmu = ddn * (1 / eta + 1 / eta ** 2 * (wo * n).sum(-1, keepdims=True) / (wi * n).sum(-1, keepdims=True))
     pbrt_v4 = -eta * dwo + mu * dn + dmu * n
     assert np.max(np.abs(pbrt_v4 - fd)) > 0.05
+    assert np.max(np.abs(got - pbrt_v4)) > 0.05
 
 
 def test_reflection_differential_matches_finite_differences(rng):
@@ -128,3 +134,62 @@ def test_spp_scale():
     assert raydiff.spp_scale(1024, 'pbrt') == 0.125
     assert raydiff.spp_scale(1024, 'none') == 1
     assert raydiff.spp_scale(4, 0.3) == 0.3
+
+
+# ------------------------------------------------------------------------------------ camera approx.
+def _true_and_approx_footprints(fov, w, h, scale, rng, n=400):
+    """At points a camera ray hits directly (a plane through the hit with a random normal facing
+    the camera, |cos| ≥ 0.3, at distance 1–10): the true footprint — Mitsuba's own one-pixel
+    ray differential of that camera ray, intersected with the plane in numpy — and the camera
+    approximation's (``CameraFootprint.dp_dxy``)."""
+    T = mi.ScalarTransform4f
+    sensor = mi.load_dict({'type': 'perspective', 'fov': fov,
+                           'to_world': T().look_at([1, 2, 3], [0, 0, 0], [0, 1, 0]),
+                           'film': {'type': 'hdrfilm', 'width': w, 'height': h}})
+    pos = rng.uniform(0, 1, (n, 2))
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
+                                            mi.Point2f(0.5, 0.5))
+    o, d, ox, dx, oy, dy = (A(v) for v in (ray.o, ray.d, ray.o_x, ray.d_x, ray.o_y, ray.d_y))
+    p = o + rng.uniform(1, 10, n)[:, None] * d
+    nrm = normalize(rng.normal(size=(n, 3)))
+    nrm = np.where(((nrm * d).sum(1) > 0)[:, None], -nrm, nrm)
+    keep = (nrm * -d).sum(1) >= 0.3
+
+    def on_plane(oo, dd):
+        t = ((p - oo) * nrm).sum(1) / (dd * nrm).sum(1)
+        return oo + t[:, None] * dd - p
+
+    true = on_plane(ox, dx), on_plane(oy, dy)
+    ax, ay = raydiff.CameraFootprint(sensor).dp_dxy(mi.Point3f(*p.T), mi.Normal3f(*nrm.T),
+                                                    scale, mi.Bool(True))
+    return true, (A(ax), A(ay)), nrm, keep
+
+
+def _size(pair):
+    return np.sqrt(np.linalg.norm(np.cross(pair[0], pair[1]), axis=1))
+
+
+def test_camera_approximation_matches_true_footprint_at_visible_points(rng):
+    """pbrt-v4's camera approximation (used after diffuse/glossy bounces) at points the camera
+    sees directly must have the size of the true camera-ray footprint there. Size = √|dpdx ×
+    dpdy| (the approximation rotates the footprint about the view axis, so single vectors may
+    differ; the area may not). Bound: fov 30° on 32×24, the film's corner is 18.5° off axis;
+    the approximation uses the smallest one-pixel differentials on the film (≥ cos⁴ 18.5° = 0.81
+    of the axis pixel's solid angle) where the true pixel has cos³ φ ≥ 0.85 of it, so the size
+    ratio lies in [0.90, 1.08]; we allow [0.85, 1.10] for the finite one-pixel offsets on planes
+    tilted up to 72° (measured 0.89–1.04). A sign error in the plane intersection (~40× too
+    large) or a missing/extra factor breaks it. Both vectors must lie in the tangent plane."""
+    (tx, ty), (ax, ay), nrm, keep = _true_and_approx_footprints(30, 32, 24, 1.0, rng)
+    ratio = (_size((ax, ay)) / _size((tx, ty)))[keep]
+    assert keep.sum() > 200
+    assert ratio.min() > 0.85 and ratio.max() < 1.10, (ratio.min(), ratio.max())
+    for v in (ax, ay):
+        assert np.all(np.abs((v * nrm).sum(1)) <= 1e-5 * np.linalg.norm(v, axis=1))
+
+
+def test_camera_approximation_scales_with_spp_factor(rng):
+    """The ``scale`` argument (pbrt-v4: max(1/8, 1/√spp)) multiplies both vectors: at scale 1/4
+    the footprint is 1/4 of the true one-pixel footprint's size within the same bounds."""
+    (tx, ty), (ax, ay), _, keep = _true_and_approx_footprints(30, 32, 24, 0.25, rng)
+    ratio = (_size((ax, ay)) / _size((tx, ty)))[keep] / 0.25
+    assert ratio.min() > 0.85 and ratio.max() < 1.10, (ratio.min(), ratio.max())

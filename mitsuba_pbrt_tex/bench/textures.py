@@ -1,7 +1,8 @@
 """The bundled test textures, generated (not painted) so they are reproducible.
 
 ``python -m mitsuba_pbrt_tex.bench.textures [FOLDER]`` writes them (default: the package's
-``scenes/textures``); ``tests/test_scenes.py`` checks the committed files equal this output.
+``scenes/textures``); ``tests/test_scenes.py`` checks the committed files against this
+description.
 
 * ``checker.png`` — 512×512 8-bit sRGB, 16×16 checks of two colours (an image twin of the
   procedural checkerboard: with ``to_uv`` scaled by 1/16 per check the patterns coincide);

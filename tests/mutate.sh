@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Mutation check of one module (mutmut), run by hand while developing — not in CI (too slow on
+# 2 cores). Usage, from the repository root:
+#     bash tests/mutate.sh mitsuba_pbrt_tex/wrap.py tests/test_wrap_reference.py tests/test_imagemap.py
+# The working tree (tests included, committed or not) is copied to a scratch folder
+# ($MUTATE_DIR, default /tmp/mutate-<module>) so that editing the tree while it runs is safe; one
+# worker, nice 15. Results: `cd $MUTATE_DIR && ../path/.venv/bin/mutmut results` (the script
+# prints the summary at the end).
+# Dr.Jit's thread pool does not survive fork(): mutmut forks its workers from a fork server that
+# imports nothing (forkserver_warmup = none), so each mutant imports mitsuba afresh.
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+MODULE="$1"; shift
+NAME="$(basename "$MODULE" .py)"
+DIR="${MUTATE_DIR:-/tmp/mutate-$NAME}"
+rm -rf "$DIR"; mkdir -p "$DIR"
+cd "$ROOT"
+git ls-files -co --exclude-standard | grep -v '^tests/mutate.sh$' | tar -cf - -T - | tar -xf - -C "$DIR"
+cd "$DIR"
+{
+  echo "[mutmut]"
+  echo "source_paths = mitsuba_pbrt_tex"
+  echo "only_mutate = $MODULE"
+  echo "process_isolation = forkserver"
+  echo "forkserver_warmup = none"
+  echo "timeout_multiplier = 4.0"
+  echo "timeout_constant = 60.0"
+  printf 'pytest_add_cli_args =\n    -q\n    -p\n    no:cacheprovider\n' 
+  echo "pytest_add_cli_args_test_selection ="
+  for t in "$@"; do echo "    $t"; done
+  echo "also_copy ="
+  echo "    plugins"
+  echo "    scenes"
+} > setup.cfg
+rm -f pyproject.toml.bak
+nice -n 15 "$ROOT/.venv/bin/mutmut" run --max-children 1 || true
+"$ROOT/.venv/bin/mutmut" results --all true 2>/dev/null || "$ROOT/.venv/bin/mutmut" results
