@@ -263,3 +263,16 @@ def test_frozen_steps_with_box_equal_unfrozen(footprint, rng):
         assert np.abs(grad_p).sum() > 0
         assert loss_f == pytest.approx(loss_p, rel=1e-5)
         np.testing.assert_allclose(grad_f, grad_p, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize('height', [0.0, 1e-4, 0.05])
+def test_hard_cases_camera_in_or_near_the_plane_stay_finite(height, rng):
+    """Camera in the plane (every hit grazing or none), a hair above it, and low over it, with
+    silhouette samples: finite images, within [0, 3/π] (texels in [0, 1], a diffuse plane under a
+    sun of irradiance 3, no other light)."""
+    d = scene_dict(box_texture(rng, size=8, tiles=50.0))
+    d['sensor']['to_world'] = T().look_at([0.2, height, 2.4], [0, height * 0.5, -3], [0, 1, 0])
+    d['integrator']['silhouette_spp'] = 4
+    img = np.array(mi.render(mi.load_dict(d), spp=1, seed=1))
+    assert np.isfinite(img).all()
+    assert img.min() >= 0 and img.max() <= 3 / np.pi + 1e-4
