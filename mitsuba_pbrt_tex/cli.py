@@ -81,6 +81,8 @@ def _bench(args) -> int:
 def _demo(args) -> int:
     if args.what == 'inverse':
         from .demo.inverse import main as run
+    elif args.what == 'horizon':
+        from .demo.horizon import main as run
     else:  # pragma: no cover
         raise ValueError(args.what)
     return run(args.rest)
@@ -124,7 +126,7 @@ def parser() -> argparse.ArgumentParser:
     b.set_defaults(func=_bench)
 
     d = sub.add_parser('demo', help='demos: inverse (texture recovery with Adam)')
-    d.add_argument('what', choices=['inverse'])
+    d.add_argument('what', choices=['inverse', 'horizon'])
     d.add_argument('rest', nargs=argparse.REMAINDER, help='options of that demo (--help)')
     d.set_defaults(func=_demo)
     return ap

@@ -7,11 +7,15 @@ and returns a Float (1-channel image) or Color3f (RGB image):
   (:func:`~mitsuba_pbrt_tex.mipmap.footprint_width`); level 0 when the pyramid holds level 0
   alone (see ``pbrt_imagemap``: the other levels of these two filters are built on request);
 * ``trilinear`` — two levels blended;
-* ``ewa`` — :class:`~mitsuba_pbrt_tex.ewa.EWAFilter`.
+* ``ewa`` — :class:`~mitsuba_pbrt_tex.ewa.EWAFilter`;
+* ``box`` — :func:`~mitsuba_pbrt_tex.box.box`, the exact average over the footprint, which also
+  reads the pyramid's prefix tables (:func:`~mitsuba_pbrt_tex.box.build_box_tables`, built by the
+  caller in one explicit step and passed as ``tables``).
 
 :meth:`TextureFilter.gradient` gives d(value)/d(s, t) of the bilinear reconstruction at the level
 the footprint selects (blended between two levels like trilinear for ``trilinear`` and ``ewa``;
-zero for ``point``, as Mitsuba's ``bitmap`` with ``nearest``) — what ``eval_1_grad`` needs.
+zero for ``point``, as Mitsuba's ``bitmap`` with ``nearest``; ``box`` as ``trilinear``) — what
+``eval_1_grad`` needs.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .box import box
 from .ewa import EWAFilter
 from .mipmap import MIPMap, Pyramid, footprint_width
 
@@ -34,10 +39,17 @@ class TextureFilter:
         self.width_convention = width_convention
         self.ewa = EWAFilter(max_anisotropy, reorder) if kind == 'ewa' else None
 
-    def __call__(self, pyramid: Pyramid, tc, active):
+    def __call__(self, pyramid: Pyramid, tc, active, tables=None):
         """The filtered value at ``tc``: Float (1 channel) or Color3f (RGB). Gradients reach
-        ``pyramid.buffer`` (and through it the texels it was built from) and ``tc.st``."""
+        ``pyramid.buffer`` (and through it the texels it was built from) and ``tc.st``.
+        ``tables``: the pyramid's :class:`~mitsuba_pbrt_tex.box.BoxTables` (``box`` only)."""
         mip = MIPMap(pyramid, self.wrap)
+        if self.kind == 'box':
+            if tables is None or tables.wrap != self.wrap:
+                raise ValueError('the box filter needs the prefix tables of the pyramid for '
+                                 'its wrap mode (mitsuba_pbrt_tex.box.build_box_tables)')
+            return box(mip, tables, tc.st, mi.Vector2f(tc.dsdx, tc.dtdx),
+                       mi.Vector2f(tc.dsdy, tc.dtdy), active)
         if self.kind == 'ewa':
             return self.ewa(mip, tc.st, mi.Vector2f(tc.dsdx, tc.dtdx),
                             mi.Vector2f(tc.dsdy, tc.dtdy), active)

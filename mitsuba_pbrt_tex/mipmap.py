@@ -70,7 +70,7 @@ import numpy as np
 
 from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
-FILTERS = ('point', 'bilinear', 'trilinear', 'ewa')
+FILTERS = ('point', 'bilinear', 'trilinear', 'ewa', 'box')
 #: Texel values are limited to ±TEXEL_LIMIT: a filter's weighted sums of values near float32's
 #: maximum (3.4e38) overflow to inf (odd-sized pyramid levels, luminance, blends of levels),
 #: while every weighted average of values within ±1e38 stays finite.

@@ -1,4 +1,4 @@
-"""pbrt_imagemap — MIP-mapped image texture with point, bilinear, trilinear and EWA filtering.
+"""pbrt_imagemap — MIP-mapped image texture: point, bilinear, trilinear, EWA and box filtering.
 
 A drop-in upgrade of Mitsuba's ``bitmap`` (its parameter names are accepted as aliases) with
 pbrt-v4's filters (pbrt section 10.4).
@@ -8,7 +8,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
 | bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
 | data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear float32 (runtime only; integer tensors are refused; ``params['...data']`` is this linear tensor for every source, where ``bitmap`` exposes 8-bit images as uint8 sRGB codes) | yes |
-| filter | string | bilinear | `point`, `bilinear`, `trilinear` or `ewa` | no |
+| filter | string | bilinear | `point`, `bilinear`, `trilinear`, `ewa` or `box` (exact average over the footprint; not with wrap `octahedralsphere`) | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
 | sortlookups | boolean | true | `ewa`: filter a large batch of scattered lookups sorted by texture tile, results in the caller's order (identical values, less waiting on memory; not inside symbolic loops/calls, where lookups cannot be reordered) | no |
@@ -50,6 +50,18 @@ built from it by :func:`~mitsuba_pbrt_tex.mipmap.build_pyramid` (level 0 RGBA-pa
 buffer as the other levels). Textures of the same file share the file's cached pyramid until
 their ``data`` is updated.
 
+``box``: the exact area average of the bilinear reconstruction over the footprint parallelogram
+(one pixel around the lookup: ``st ± dst/dx/2 ± dst/dy/2``), with no minimum width under
+magnification and no anisotropy limit; cost grows with the footprint's *shorter* extent only, up
+to :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels, beyond which a coarser level is averaged
+exactly (see :mod:`mitsuba_pbrt_tex.box`). It needs per-row and per-column prefix tables of every
+level, built once with the pyramid (float64, RGB padded to RGBA: 320 bytes per RGB texel, 80 per
+1-channel texel, e.g. ~450 MB for a 1024² RGB image). ``eval_1_grad`` is that of
+``trilinear``. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
+their pixel's footprint (every sample of a pixel sees its average; right for albedo and
+emission, not for roughness or bump maps, whose shading is not linear in the texture — use
+another filter there).
+
 Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
 call such as ``tex.eval(si)`` from Python, or Mitsuba's wavefront mode — ``ewa`` sorts it by the
@@ -82,6 +94,8 @@ import threading
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_pbrt_tex import pixel
+from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
@@ -118,6 +132,10 @@ class Plugin(PbrtTexture):
         self.sort_lookups = p.bool('sortlookups', True)
         self.wrap = p.enum('wrap', 'repeat', WRAP_MODES, alias='wrap_mode',
                            alias_choices={'repeat': 'repeat', 'mirror': 'mirror', 'clamp': 'clamp'})
+        if self.filter_name == 'box' and self.wrap == 'octahedralsphere':
+            raise p.error('filter', 'value "box" does not support wrap "octahedralsphere" (its '
+                                    'wrap couples the axes); accepted wraps with "box": '
+                                    + ', '.join(BOX_WRAPS))
         self._scale_value = p.float('scale', 1.0)
         self.scale = self.jit_value('scale', self._scale_value)
         self.invert = p.bool('invert', False)
@@ -178,7 +196,9 @@ class Plugin(PbrtTexture):
             img = self._call(lambda: decode_bitmap(bmp, encoding, 'the bitmap'), 'bitmap')
             self.data, self.source = mi.TensorXf(img.texels), 'bitmap object'
             self._warn_nonfinite(img.nonfinite)
-        self.pyramid = self._build(levels=self.filter_name in ('trilinear', 'ewa'))
+        self.pyramid = self._build(levels=self.filter_name in ('trilinear', 'ewa', 'box'))
+        self._box_tables = None
+        self._sync_box_tables()
 
     def _call(self, fn, param):
         try:
@@ -228,6 +248,21 @@ class Plugin(PbrtTexture):
         release_build_temporaries(pyramid)
         return pyramid
 
+    def _sync_box_tables(self):
+        """``box`` only: (re)build the prefix tables of the current pyramid — one explicit pure
+        step, in the AD graph like the pyramid — unless they are already its own."""
+        if self.filter_name != 'box':
+            return None
+        tables = self._box_tables
+        if tables is None or tables.pyramid is not self.pyramid:
+            if dr.flag(dr.JitFlag.SymbolicScope):
+                raise PluginError(f'{self.NAME}: the box filter\'s tables are out of date inside '
+                                  f'a symbolic loop or call; call params.update() before '
+                                  f'rendering')
+            with dr.resume_grad():
+                self._box_tables = tables = build_box_tables(self.pyramid, self.wrap)
+        return tables
+
     def _make_filter(self):
         self.filter = TextureFilter(self.filter_name, self.wrap, self.max_anisotropy,
                                     WIDTH_CONVENTIONS[self.width_convention], self.sort_lookups)
@@ -256,9 +291,18 @@ class Plugin(PbrtTexture):
         return pyr
 
     # ------------------------------------------------------------------ evaluation
+    def context(self, si):
+        """``box`` opts in to pixel footprints (``pbrt_path`` ``footprint="pixel"``: camera hits
+        filter their pixel's footprint, see :mod:`mitsuba_pbrt_tex.pixel`); the other filters
+        stay sample-centred."""
+        if self.filter_name == 'box':
+            return pixel.context(si)
+        return TextureEvalContext.from_si(si)
+
     def _value(self, si, active):
         tc = self.mapping.map(self.context(si))
-        v = self.filter(self._lookup_pyramid(), tc, active) * self.scale
+        pyr = self._lookup_pyramid()
+        v = self.filter(pyr, tc, active, self._sync_box_tables()) * self.scale
         if self.invert:
             v = dr.maximum(0, 1 - v)
         return v
@@ -333,6 +377,7 @@ class Plugin(PbrtTexture):
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
         # lazily during the render (under pbrt_path) would miss it.
         self.pyramid = self._build(self.pyramid.complete or dr.grad_enabled(self.data))
+        self._sync_box_tables()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
 
     def _check_new_texels(self):

@@ -14,6 +14,8 @@ hit before its BSDF is evaluated or sampled.
 | hide_emitters | boolean | false | hide directly visible emitters | no |
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
+| footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` film filter) | no |
+| silhouette_spp | integer | 0 | `footprint="pixel"`: this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; primal renders only | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (uv partials at the first hit; 2 channels each) | no |
 
 Where the differentials come from:
@@ -25,6 +27,16 @@ Where the differentials come from:
   corrected, see :mod:`mitsuba_pbrt_tex.raydiff`) and dropped if an offset exceeds 1e16;
 * everywhere else (after diffuse/glossy bounces, or when a propagated differential is lost):
   pbrt-v4's camera approximation — the footprint a camera ray would have at that point.
+
+``footprint="pixel"``: with a box film filter each sample counts only in its own pixel, so a
+texture that opts in (``pbrt_imagemap`` ``filter="box"``) filters the footprint of the *pixel*
+at camera hits — centred on the pixel, with the perspective-corrected partials — and every
+sample of a pixel sees the same value: a 1-spp image of such a texture is already its pixel
+average (:mod:`mitsuba_pbrt_tex.pixel` explains the geometry and how the texture learns the
+pixel without any per-lane data passed to it). This is exact for textures that enter the shading
+linearly (albedo, emission); a roughness, bump or opacity texture would converge to the shading
+of the pixel-averaged texture, so only opting-in filters are pixel-centred, the other textures
+and later bounces keep the sample's footprint (``si.duv_dx``/``si.duv_dy`` are unchanged).
 
 The partials are least-squares solved in the tangent frame, made finite and clamped to ±1e8, and
 written to ``si.duv_dx``/``si.duv_dy``, so any texture — ours, Mitsuba's, or a Python texture of
@@ -50,6 +62,13 @@ where differentials need it:
   remembered in ``sample_rays`` for the camera approximation, and the scene's textures are asked
   (``prepare_differentials``) at each render;
 * optional AOVs with the first hit's uv partials;
+* ``footprint="pixel"``: ``sample()`` publishes the sensor to opting-in textures while it is
+  traced (or run, in wavefront mode) — see :mod:`mitsuba_pbrt_tex.pixel`; the light transport,
+  the random numbers and ``si`` are those of ``footprint="sample"``;
+* ``silhouette_spp > 0`` (with ``footprint="pixel"``, primal renders only): after the sample's
+  path, five camera rays per lane (the pixel's centre and corners) find the pixels that cross a
+  silhouette; those lanes, compacted, trace ``silhouette_spp`` more paths through random points
+  of their pixel (from a sampler forked and seeded from the render's) and return the average;
 * under ``dr.freeze`` the spp scale is a literal (the host → device copy of ``dr.opaque`` cannot
   be recorded; spp is part of the frozen function's key).
 """
@@ -57,8 +76,8 @@ where differentials need it:
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex import raydiff, variants
-from mitsuba_pbrt_tex.params import Params
+from mitsuba_pbrt_tex import pixel, raydiff, variants
+from mitsuba_pbrt_tex.params import Params, PluginError
 from mitsuba_pbrt_tex.raydiff import RayDiff
 from mitsuba_pbrt_tex.texture import uses_differentials
 
@@ -71,6 +90,9 @@ def _prb_helpers():
     from mitsuba.ad.integrators.common import mis_weight, solid_angle_to_area_jacobian
     return mis_weight, solid_angle_to_area_jacobian
 
+FOOTPRINTS = ('sample', 'pixel')
+PIXEL_SENSORS = ('PerspectiveCamera',)
+PIXEL_FILTERS = ('BoxFilter',)
 AOV_CHANNELS = {'duv_dx': ('duv_dx.u', 'duv_dx.v'), 'duv_dy': ('duv_dy.u', 'duv_dy.v')}
 
 
@@ -96,6 +118,8 @@ class Plugin:
         self.hide_emitters = p.bool('hide_emitters', False)
         self.texture_differentials = p.bool('texture_differentials', True)
         self.spp_mode = self._spp_mode(p)
+        self.footprint_mode = p.enum('footprint', 'sample', FOOTPRINTS)
+        self.silhouette_spp = p.int('silhouette_spp', 0, lo=0)
         text = p.string('aovs', '') or ''
         self.aov_list = [a.strip() for a in text.split(',') if a.strip()]
         for a in self.aov_list:
@@ -119,7 +143,9 @@ class Plugin:
     def to_string(self):
         return (f'{self.NAME}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, '
                 f'hide_emitters={self.hide_emitters}, texture_differentials='
-                f'{self.texture_differentials}, spp_scale={self.spp_mode}, aovs={self.aov_list}]')
+                f'{self.texture_differentials}, spp_scale={self.spp_mode}, '
+                f'footprint={self.footprint_mode}, silhouette_spp={self.silhouette_spp}, '
+                f'aovs={self.aov_list}]')
 
     def set_total_spp(self, spp):
         """Use ``spp`` (not the spp of each ``mi.render`` call) for the footprint scale."""
@@ -146,30 +172,139 @@ class Plugin:
     def sample_rays(self, scene, sensor, sampler):
         """The base class's camera rays; remembers the sensor for the camera approximation."""
         self._sensor = sensor
-        return self._pbrt_base.sample_rays(self, scene, sensor, sampler)
+        ray, weight, pos = self._pbrt_base.sample_rays(self, scene, sensor, sampler)
+        self._pixel_pos = pos         # with a box filter: the sample's pixel (silhouette_spp)
+        return ray, weight, pos
+
+    def pixel_sensor(self, sensor):
+        """The sensor to publish for ``footprint="pixel"`` (None for ``sample``); an error names
+        what does not fit."""
+        if self.footprint_mode != 'pixel':
+            return None
+        kind = sensor.class_name()
+        if kind not in PIXEL_SENSORS:
+            raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs a '
+                              f'perspective sensor, got {kind}; accepted values: '
+                              f'{", ".join(FOOTPRINTS)}')
+        rfilter = sensor.film().rfilter().class_name()
+        if rfilter not in PIXEL_FILTERS:
+            raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs the '
+                              f'film filter "box", got {rfilter}; accepted values: '
+                              f'{", ".join(FOOTPRINTS)}')
+        return sensor
 
     # ------------------------------------------------------------------ the path tracer
-    @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
-        """See ``ADIntegrator.sample()``. The stages are those of Mitsuba 3.9's ``prb`` (same
-        helpers, same order of random numbers), plus the stages marked "differentials"."""
-        mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
-        primal = mode == dr.ADMode.Primal
-        bsdf_ctx = mi.BSDFContext()
-        want = self.needs_differentials(scene)
-
-        # ---- differentials: the camera ray's, scaled for the sample count --------------------
+        """See ``ADIntegrator.sample()``: :meth:`trace`, with the sensor published to opting-in
+        textures for ``footprint="pixel"``, and extra samples in silhouette pixels
+        (``silhouette_spp``)."""
         sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
+        prep = self.prepare_trace(scene, sampler, sensor)
+        published = self.pixel_sensor(sensor) if prep[0] else None
+        extra = self.silhouette_spp if published is not None else 0
+        if extra and mode != dr.ADMode.Primal:
+            raise PluginError(f'{self.NAME}: parameter "silhouette_spp": value {extra} is for '
+                              f'primal renders; differentiable renders need 0')
+        if published is None:
+            return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
+        with pixel.published(published):
+            out = self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
+            if extra:
+                L, valid, aovs, state = out
+                edge = self.silhouette_pixels(scene, sensor, mi.Bool(active))
+                acc = self.silhouette_paths(scene, sensor, sampler, edge, prep)
+                L = dr.select(edge, (L + acc) * (1.0 / (extra + 1)), L)
+                out = (L, valid, aovs, L)
+            return out
+
+    def silhouette_paths(self, scene, sensor, sampler, edge, prep):
+        """Sum of the extra paths of the ``edge`` lanes (0 elsewhere). Outside a symbolic scope
+        (``mi.render`` calls ``sample()`` there) the edge lanes are compacted first — a few
+        percent of the lanes, which a masked loop over all lanes would carry along — and draw
+        from a sampler of their own, seeded from this one."""
+        pixel_pos = mi.Vector2f(self._pixel_pos)
+        if dr.flag(dr.JitFlag.SymbolicScope):
+            return self.silhouette_samples(scene, sensor, sampler, pixel_pos, edge, prep)
+        index = dr.compress(edge)
+        count = dr.width(index)
+        total = dr.zeros(mi.Spectrum, dr.width(edge))
+        if count == 0:
+            return total
+        seed = dr.gather(mi.UInt32, mi.UInt32(sampler.next_1d() * 4294967040.0), 0)
+        sub = sampler.fork()
+        sub.seed(seed, count)
+        acc = self.silhouette_samples(scene, sensor, sub, dr.gather(mi.Vector2f, pixel_pos, index),
+                                      dr.full(mi.Bool, True, count), prep)
+        dr.scatter(total, acc, index)
+        return total
+
+    def prepare_trace(self, scene, sampler, sensor):
+        """(does any texture use differentials, the camera differential's scale, the camera
+        approximation) — computed once per ``sample()``, outside any symbolic loop."""
+        want = self.needs_differentials(scene)
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
         # (but a frozen function cannot record the host → device copy; spp is part of its key)
         scale = raydiff.spp_scale(spp, self.spp_mode)
         scale = mi.Float(scale) if dr.flag(dr.JitFlag.FreezingScope) else dr.opaque(mi.Float, scale)
+        return want, scale, (self.footprint(sensor) if want else None)
+
+    # ------------------------------------------------------------------ silhouette samples
+    def _film_ray(self, sensor, pixel_pos, offset, active):
+        """The camera ray through ``pixel_pos + offset`` (full-film pixel coordinates)."""
+        film = sensor.film()
+        size = mi.ScalarVector2f(film.crop_size())
+        origin = mi.ScalarVector2f(film.crop_offset())
+        pos = (pixel_pos + offset - origin) / size
+        ray, _ = sensor.sample_ray_differential(mi.Float(sensor.shutter_open()), mi.Float(0.5),
+                                                pos, mi.Point2f(0.5), active)
+        return ray
+
+    def silhouette_pixels(self, scene, sensor, active):
+        """Lanes whose pixel's centre and corner rays disagree about the surface they hit (a
+        miss, another shape, or normals more than ~25° apart): the pixel crosses a silhouette."""
+        pixel_pos = mi.Vector2f(self._pixel_pos)
+        hits = []
+        for offset in ((0.5, 0.5), (0, 0), (1, 0), (0, 1), (1, 1)):
+            ray = self._film_ray(sensor, pixel_pos, mi.Vector2f(*offset), active)
+            si = scene.ray_intersect(mi.Ray3f(ray), mi.RayFlags.Minimal, True, active)
+            hits.append((si.is_valid(), dr.reinterpret_array(mi.UInt32, si.shape),
+                         mi.Vector3f(si.n)))
+        valid0, shape0, n0 = hits[0]
+        edge = mi.Bool(False)
+        for valid, shape, n in hits[1:]:
+            edge |= (valid != valid0) | (valid & ((shape != shape0) | (dr.dot(n, n0) < 0.9)))
+        return active & edge
+
+    @dr.syntax
+    def silhouette_samples(self, scene, sensor, sampler, pixel_pos, edge, prep):
+        """Sum of ``silhouette_spp`` more paths through random points of each ``edge`` lane's
+        pixel ``pixel_pos`` (footprints stay the pixel's)."""
+        k = mi.UInt32(0)
+        acc = mi.Spectrum(0)
+        while dr.hint(edge & (k < self.silhouette_spp), label='pbrt_path (silhouettes)'):
+            ray = self._film_ray(sensor, pixel_pos, sampler.next_2d(), edge)
+            L, _, _, _ = self.trace(dr.ADMode.Primal, scene, sampler, ray, None, None, edge,
+                                    prep=prep)
+            acc += L
+            k += 1
+        return acc
+
+    @dr.syntax
+    def trace(self, mode, scene, sampler, ray, δL, state_in, active, prep=None, **kwargs):
+        """The path tracer. The stages are those of Mitsuba 3.9's ``prb`` (same helpers, same
+        order of random numbers), plus the stages marked "differentials". ``prep``: what
+        :meth:`prepare_trace` returns."""
+        mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
+        primal = mode == dr.ADMode.Primal
+        bsdf_ctx = mi.BSDFContext()
+        want, scale, camera = prep
+
+        # ---- differentials: the camera ray's, scaled for the sample count --------------------
         if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
             diff = RayDiff.of_camera_ray(ray, scale)
         else:
             diff = RayDiff()
-        camera = self.footprint(sensor) if want else None
         first_duv_dx, first_duv_dy = mi.Vector2f(0), mi.Vector2f(0)
 
         # ---- loop state (as prb) -------------------------------------------------------------

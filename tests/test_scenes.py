@@ -17,7 +17,7 @@ SCENES = os.path.join(ROOT, 'scenes')
                                   'bench/grazing.xml', 'bench/mappings.xml', 'bench/noise.xml',
                                   'bench/specular.xml'])
 def test_scene_renders_without_nan(name):
-    kw = {'width': '48', 'height': '27'} if name.startswith('bench') or name != 'demo.xml' else {'res': '32'}
+    kw = {'width': '48', 'height': '27'}
     scene = mi.load_file(os.path.join(SCENES, name), **kw)
     img = np.array(mi.render(scene, spp=2))
     assert np.isfinite(img).all() and img.mean() > 0

@@ -6,6 +6,8 @@ by Mitsuba's ``bitmap`` (bilinear, the same texels) and by ``pbrt_imagemap`` wit
 in the same process, interleaved, median of ``--repeats`` runs after a warm-up that compiles the
 kernels. Prints millions of lookups per second and the ratio to ``bitmap``.
 
+``box`` (the exact footprint average) is timed in the order given (it never sorts).
+
 Point and bilinear are timed twice: as under Mitsuba's integrators (no pyramid: level 0, like
 ``bitmap``) and as under ``pbrt_path`` (the level the footprint selects). EWA is timed twice as
 well: as this call gets it (the batch is evaluated, so ``ewa`` filters it sorted by texture tile,
@@ -80,7 +82,7 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
                                 ('bilinear (level 0)', 'bilinear', False),
                                 ('bilinear (MIP level)', 'bilinear', True),
                                 ('trilinear', 'trilinear', True), ('ewa', 'ewa', True),
-                                (GIVEN_ORDER, 'ewa', True)):
+                                (GIVEN_ORDER, 'ewa', True), ('box', 'box', True)):
         tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(texels), 'filter': filt,
                             'maxanisotropy': max_anisotropy,
                             'sortlookups': name != GIVEN_ORDER})

@@ -7,7 +7,9 @@ the scene's reference image.
 
 Methods: what Mitsuba users do today — Mitsuba's ``bitmap``/``checkerboard`` (or, where no
 built-in can express the texture, our texture without any footprint) under Mitsuba's ``path``
-with more samples — and every filter/``aamode`` of ours under ``pbrt_path``.
+with more samples — and every filter/``aamode`` of ours under ``pbrt_path``; on the grazing image
+scenes also ``box`` with ``pbrt_path``'s ``footprint="pixel"`` (camera hits filter their
+pixel's footprint).
 
 Reference: the same scene with the textures point-sampled at full resolution (``bitmap`` /
 point-sampled procedurals under ``path``, i.e. no prefiltering at all) and the same box pixel
@@ -73,7 +75,7 @@ def _checker_cases(cells):
     return builtin, ours
 
 
-def _image_methods(image, tiles):
+def _image_methods(image, tiles, pixel=False):
     common = {'texture': 'tex/image_pbrt.xml', 'image': image, 'tiles': tiles}
     builtin = [Method('Mitsuba bitmap + path', {'texture': 'tex/image_bitmap.xml', 'image': image,
                                                'tiles': tiles, 'integrator': 'path'}, False)]
@@ -81,7 +83,14 @@ def _image_methods(image, tiles):
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear', 'trilinearwidth': 'v3'}, True, 'trilinear-width'),
             Method('pbrt_imagemap trilinear v4', {**common, 'filter': 'trilinear', 'trilinearwidth': 'v4'}, True, 'trilinear-width'),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True, 'ewa-anisotropy'),
-            Method('pbrt_imagemap ewa 32', {**common, 'filter': 'ewa', 'maxanisotropy': '32'}, True, 'ewa-anisotropy')]
+            Method('pbrt_imagemap ewa 32', {**common, 'filter': 'ewa', 'maxanisotropy': '32'}, True, 'ewa-anisotropy'),
+            Method('pbrt_imagemap box', {**common, 'filter': 'box'}, True, 'footprint')]
+    if pixel:           # scenes whose pbrt_path takes "footprint" (int/pbrt_path.xml)
+        ours.append(Method('pbrt_imagemap box, footprint pixel',
+                           {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'))
+        ours.append(Method('pbrt_imagemap box, footprint pixel, silhouette_spp 16',
+                           {**common, 'filter': 'box', 'footprint': 'pixel',
+                            'silhouette_spp': '16'}, True, 'footprint'))
     return builtin, ours
 
 
@@ -93,13 +102,13 @@ def cases() -> list[Case]:
                     'plane to the horizon, procedural checkerboard (cells of 0.2 world units)',
                     {'texture': 'tex/checker_pbrt.xml', 'cells': '2000', 'aamode': 'none',
                      'integrator': 'path'}, b + o, flat))
-    b, o = _image_methods('../textures/checker.png', '125')
+    b, o = _image_methods('../textures/checker.png', '125', pixel=True)
     out.append(Case('grazing-checker-image', 'grazing.xml',
                     'plane to the horizon, checker image (16×16 checks per tile, 125×125 tiles: '
                     'the same 0.2-unit cells)',
                     {'texture': 'tex/image_bitmap.xml', 'tiles': '125', 'integrator': 'path'},
                     b + o, flat))
-    b, o = _image_methods('../textures/zoneplate.png', '100')
+    b, o = _image_methods('../textures/zoneplate.png', '100', pixel=True)
     out.append(Case('grazing-zoneplate', 'grazing.xml',
                     'plane to the horizon, zone-plate image (100×100 tiles)',
                     {'texture': 'tex/image_bitmap.xml', 'image': '../textures/zoneplate.png',
@@ -234,7 +243,8 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
     mi.set_variant(variant)
     mpt.register()
     res = (64, 36) if quick else (320, 180)
-    builtin_spp = [1, 4, 16] if quick else [1, 4, 16, 64, 256]
+    # up to 1024 spp: pixel footprints reach errors that 256 spp of point sampling does not
+    builtin_spp = [1, 4, 16] if quick else [1, 4, 16, 64, 256, 1024]
     ours_spp = [1, 4] if quick else [1, 4, 16, 64]
     repeats = repeats or (1 if quick else 3)
     ref_spp = ref_spp or (64 if quick else 4096)
@@ -292,22 +302,31 @@ def summarize(case: Case, rows) -> list[str]:
         return []
     best = min(ours1, key=lambda r: r['rmse_textured'])
     lines = []
+    noise = mine[0]['reference_noise']
     for bname in sorted({r['method'] for r in mine if not r['ours']}):
         curve = [(r['time_s'], r['rmse_textured']) for r in mine if r['method'] == bname]
-        t_eq = _interp_time(curve, best['rmse_textured'])
-        noise = mine[0]['reference_noise']
-        if t_eq is None:
-            tmax = max(t for t, _ in curve)
-            text = (f'> {tmax / best["time_s"]:.1f}× (never reached within '
-                    f'{max(r["spp"] for r in mine if r["method"] == bname)} spp)')
-        else:
-            text = f'{t_eq / best["time_s"]:.1f}×'
+        max_spp = max(r['spp'] for r in mine if r['method'] == bname)
         lines.append(f'- **{case.name}**: best of ours at 1 spp is *{best["method"]}* '
                      f'(RMSE {best["rmse_textured"]:.4f} on the textured pixels, '
                      f'{best["time_s"] * 1e3:.0f} ms); {bname} reaches that error '
-                     f'at an equal-error speed-up of **{text}** (reference noise RMSE '
-                     f'{noise:.5f}).')
+                     f'at an equal-error speed-up of **{_speedup(curve, best, max_spp)}** '
+                     f'(reference noise RMSE {noise:.5f}).')
+        # the footprint methods one by one: with and without silhouette samples
+        for r in sorted((r for r in ours1 if r['group'] == 'footprint' and r is not best),
+                        key=lambda r: r['method']):
+            lines.append(f'  - *{r["method"]}* (RMSE {r["rmse_textured"]:.4f}, '
+                         f'{r["time_s"] * 1e3:.0f} ms): equal-error speed-up over {bname} '
+                         f'**{_speedup(curve, r, max_spp)}**.')
     return lines
+
+
+def _speedup(curve, row, max_spp) -> str:
+    """Time the (time, error) ``curve`` needs for ``row``'s error, over ``row``'s time."""
+    t_eq = _interp_time(curve, row['rmse_textured'])
+    if t_eq is None:
+        tmax = max(t for t, _ in curve)
+        return f'> {tmax / row["time_s"]:.1f}× (never reached within {max_spp} spp)'
+    return f'{t_eq / row["time_s"]:.1f}×'
 
 
 def compare_groups(rows) -> list[str]:

@@ -1,0 +1,209 @@
+"""pbrt_imagemap ``filter="box"``: the exact area average of the bilinear reconstruction over the
+footprint parallelogram, against an independent polygon-clipping reference
+(``reference_box.py``), at the level the documented rule selects; hard cases; errors; texel
+gradients against finite differences.
+
+Tolerances: the package integrates in float64 and returns float32, and its inputs (uv and the
+derivatives) are float32 — the references are fed the same float32-rounded values — so results
+agree to float32 rounding of values in [0, 1] plus the float64 cancellation of the third
+antiderivative (≤ 1e-7 for these sizes): ``atol = 1e-5`` leaves a wide margin and still fails
+on any wrong weight (a misplaced texel or band changes results by > 1e-3).
+"""
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import reference_box as rbox
+import reference_mipmap as ref
+from conftest import A, make_si
+
+MAX_BANDS = 16         # documented in mitsuba_pbrt_tex.box: the level rule the test re-derives
+WRAPS = ['repeat', 'mirror', 'clamp', 'black']
+
+
+def imagemap(img, **kw):
+    return mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(np.asarray(img, np.float32)),
+                         'filter': 'box', **kw})
+
+
+def f32(x):
+    return np.asarray(x, np.float32).astype(np.float64)
+
+
+def footprints(rng, n, major_texels, ratios, res):
+    """Random orientations; major axis lengths in texels, minor = major / ratio."""
+    ang = rng.uniform(0, math.pi, n)
+    minor = major_texels / ratios
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * (major_texels / res)[:, None]
+    d1 = np.stack([-np.sin(ang), np.cos(ang)], 1) * (minor / res)[:, None]
+    # shear a little, so the footprints are parallelograms, not just rectangles
+    d1 = d1 + 0.2 * d0 * rng.uniform(-1, 1, (n, 1))
+    return f32(d0), f32(d1)
+
+
+def expected_level(img_shape, d0, d1, n_levels):
+    h, w = img_shape
+    ex = (abs(d0[0]) + abs(d1[0])) * w
+    ey = (abs(d0[1]) + abs(d1[1])) * h
+    return int(np.clip(math.ceil(math.log2(min(ex, ey) / MAX_BANDS)), 0, n_levels - 1))
+
+
+@pytest.mark.parametrize('wrap', WRAPS)
+@pytest.mark.parametrize('channels', [1, 3])
+def test_level0_matches_polygon_clipping(wrap, channels, rng):
+    """Footprints with up to 8 texels across (level 0): random orientation and shear, anisotropy
+    1–64:1, sub-texel minor axes down to 0.002 texel, lookups across the image edges."""
+    img = rng.random((13, 19, channels))
+    tex = imagemap(img, wrap=wrap)
+    n = 24
+    uv = f32(rng.uniform(-0.4, 1.4, (n, 2)))
+    major = np.concatenate([rng.uniform(0.05, 1.0, n // 3), rng.uniform(1, 8, n - n // 3)])
+    ratios = rng.choice([1.0, 4.0, 16.0, 64.0], n)
+    d0, d1 = footprints(rng, n, major, ratios, 19)
+    got = A(tex.eval_3(make_si(uv, d0, d1)) if channels == 3 else tex.eval_1(make_si(uv, d0, d1)))
+    want = np.array([rbox.box_average(img, uv[k, 0], uv[k, 1], d0[k], d1[k], wrap)
+                     for k in range(n)])
+    if channels == 1:
+        want = want[:, 0]
+    for k in range(n):
+        assert expected_level(img.shape[:2], d0[k], d1[k], 5) == 0
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+@pytest.mark.parametrize('wrap', WRAPS)
+def test_coarser_levels_match_polygon_clipping(wrap, rng):
+    """Minified footprints (16–120 texels across, up to 64:1): the exact average at the level the
+    rule picks (the finest with ≤ 16 texels across), on the reference pyramid's level."""
+    img = rng.random((48, 64, 3))
+    levels = ref.pyramid(img)
+    tex = imagemap(img, wrap=wrap)
+    n = 16
+    uv = f32(rng.uniform(-0.2, 1.2, (n, 2)))
+    ratios = rng.choice([1.0, 2.0, 8.0, 64.0], n)
+    major = rng.uniform(20, 120, n) * np.where(ratios > 8, 16, 1)
+    d0, d1 = footprints(rng, n, major, ratios, 64)
+    got = A(tex.eval_3(make_si(uv, d0, d1)))
+    picked = [expected_level(img.shape[:2], d0[k], d1[k], len(levels)) for k in range(n)]
+    assert max(picked) >= 2
+    want = np.array([rbox.box_average(levels[picked[k]], uv[k, 0], uv[k, 1], d0[k], d1[k], wrap)
+                     for k in range(n)])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_point_footprints_are_bilinear_and_tiny_ones_converge_to_it(rng):
+    """Zero or collinear derivatives (no area): the bilinear lookup at level 0. A 1e-3-texel
+    footprint differs from it by at most its size times the largest texel difference."""
+    img = rng.random((16, 16, 3))
+    tex = imagemap(img)
+    n = 40
+    uv = f32(rng.uniform(0, 1, (n, 2)))
+    bil = ref.bilinear(img, uv[:, 0], uv[:, 1], 'repeat')
+    zero = np.zeros((n, 2))
+    line = f32(rng.normal(size=(n, 2)) * 0.1)
+    np.testing.assert_allclose(A(tex.eval_3(make_si(uv, zero, zero))), bil, atol=1e-5)
+    np.testing.assert_allclose(A(tex.eval_3(make_si(uv, line, 2 * line))), bil, atol=1e-5)
+    d0, d1 = footprints(rng, n, np.full(n, 1e-3), np.full(n, 1.0), 16)
+    np.testing.assert_allclose(A(tex.eval_3(make_si(uv, d0, d1))), bil, atol=2e-3)
+
+
+@pytest.mark.parametrize('wrap', WRAPS)
+def test_footprint_covering_texture(wrap, rng):
+    """Repeat/mirror: a footprint of exactly 2×2 (mirror: 2×2 periods of the mirrored image)
+    image copies averages to the image mean, by periodicity — exactly, wherever it is."""
+    img = rng.random((8, 8, 3))
+    tex = imagemap(img, wrap=wrap)
+    n = 20
+    uv = rng.uniform(-2, 3, (n, 2))
+    d0, d1 = np.tile([2.0, 0.0], (n, 1)), np.tile([0.0, 2.0], (n, 1))
+    out = A(tex.eval_3(make_si(uv, d0, d1)))
+    if wrap in ('repeat', 'mirror'):
+        np.testing.assert_allclose(out, np.tile(img.mean((0, 1)), (n, 1)), atol=1e-5)
+    else:
+        assert np.isfinite(out).all()
+
+
+@pytest.mark.parametrize('shape', [(1, 1), (1, 7), (7, 1), (37, 53)])
+@pytest.mark.parametrize('wrap', WRAPS)
+def test_hard_cases_stay_finite_and_in_range(shape, wrap, rng):
+    img = rng.random(shape + (3,))
+    tex = imagemap(img, wrap=wrap)
+    inf, nan = float('inf'), float('nan')
+    uv = np.array([[0.5, 0.5], [1e6, -1e6], [-1e6, 3e5], [nan, 0.2], [inf, -inf], [0.3, nan],
+                   [0.0, 1.0], [1.0 - 1e-7, 1e-7], [2.5, -3.5], [0.25, 0.75]] * 3)
+    d0 = np.array([[0, 0], [nan, 1], [inf, 0], [1e-3, 1e-9], [1e8, 1e8], [0.01, 0.0], [1e-6, 0],
+                   [0.3, 0.3], [1e30, -1e30], [0.02, 0.01]] * 3)
+    d1 = np.array([[0, 0], [0, nan], [0, inf], [0, 0], [1e-8, 0], [0.0, 0.0], [0, 1e-12],
+                   [-0.3, 0.3], [0, 1e-30], [-1e-8, 2e-8]] * 3)
+    out = A(tex.eval_3(make_si(uv, d0, d1)))          # RGB in every variant
+    assert out.shape == (len(uv), 3) and np.isfinite(out).all()
+    lo = 0.0 if wrap == 'black' else img.min()
+    assert (out >= lo - 1e-5).all() and (out <= img.max() + 1e-5).all()
+
+
+def test_box_refuses_octahedral_wrap():
+    with pytest.raises(RuntimeError) as e:
+        imagemap(np.ones((4, 4, 1)), wrap='octahedralsphere')
+    msg = str(e.value)
+    for word in ('pbrt_imagemap', '"filter"', '"box"', 'octahedralsphere', 'repeat, mirror'):
+        assert word in msg, (word, msg)
+
+
+def test_parameter_update_rebuilds_tables(rng):
+    """New texels (another shape) through params.update(): lookups read the new image."""
+    tex = imagemap(rng.random((8, 8, 3)))
+    params = mi.traverse(tex)
+    img = rng.random((12, 6, 3))
+    params['data'] = mi.TensorXf(img.astype(np.float32))
+    params.update()
+    uv = f32(rng.uniform(0, 1, (10, 2)))
+    d0, d1 = footprints(rng, 10, rng.uniform(0.5, 4, 10), np.full(10, 2.0), 6)
+    want = np.array([rbox.box_average(img, uv[k, 0], uv[k, 1], d0[k], d1[k], 'repeat')
+                     for k in range(10)])
+    np.testing.assert_allclose(A(tex.eval_3(make_si(uv, d0, d1))), want, atol=1e-5)
+
+
+def test_backward_reaches_texels_and_matches_finite_differences(rng):
+    """d(loss)/d(data) by dr.backward equals central differences of the loss, which is linear in
+    the texels (exact up to float32 rounding: rtol 1e-3), for footprints at level 0 and above."""
+    img = rng.random((8, 12, 3)).astype(np.float32)
+    tex = imagemap(img, wrap='mirror')
+    n = 48
+    uv = rng.uniform(0, 1, (n, 2))
+    major = np.concatenate([rng.uniform(0.3, 3, n // 2), rng.uniform(10, 30, n - n // 2)])
+    d0, d1 = footprints(rng, n, major, rng.choice([1.0, 8.0], n), 12)
+    si = make_si(uv, d0, d1)
+    w = mi.Float(rng.random(n))
+    params = mi.traverse(tex)
+    data = mi.TensorXf(img)
+    dr.enable_grad(data)
+    params['data'] = data
+    params.update()
+    loss = dr.sum(w * tex.eval_1(si))
+    dr.backward(loss)
+    grad = np.array(dr.grad(params['data']))
+    assert np.abs(grad).sum() > 0
+
+    def loss_at(arr):
+        params['data'] = mi.TensorXf(arr)
+        params.update()
+        return float(dr.sum(w * tex.eval_1(si))[0])
+
+    flat = np.argsort(-np.abs(grad).ravel())[:6].tolist() + [int(rng.integers(grad.size))]
+    for k in flat:
+        e = np.zeros(img.size, np.float32)
+        e[k] = 1.0
+        e = e.reshape(img.shape)
+        fd = (loss_at(img + e) - loss_at(img - e)) / 2
+        assert grad.ravel()[k] == pytest.approx(fd, rel=1e-3, abs=1e-4)
+
+
+def test_render_gradient_through_box_under_pbrt_path(rng):
+    """Texel gradients of a rendered image (pbrt_path, grazing plane) against central finite
+    differences at the gradient seed (the project's check_gradient: 2% relative)."""
+    from test_gradients import check_gradient, image_tex, scene_with
+    scene = scene_with(image_tex(rng, 'box'))
+    check_gradient(scene, 'plane.bsdf.reflectance.data', rng)

@@ -1,0 +1,278 @@
+"""pbrt_path ``footprint="pixel"``: the pixel-centred footprint of camera hits against
+brute-force ray casts through the pixel's centre and corners; 1-spp renders equal between seeds
+on fully covered pixels (symbolic loop, symbolic BSDF call, wavefront mode) and close to a
+high-spp pixel average; errors; texel gradients against finite differences."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from conftest import A
+
+T = mi.ScalarTransform4f
+RES = (24, 16)
+
+
+def scene_dict(texture, footprint='pixel', rfilter='box', second_bsdf=True, spp=1):
+    d = {
+        'type': 'scene',
+        'integrator': {'type': 'pbrt_path', 'max_depth': 2, 'footprint': footprint},
+        'sensor': {'type': 'perspective', 'fov': 45,
+                   'to_world': T().look_at([0.3, 1.2, 3.0], [0, 0, -0.5], [0, 1, 0]),
+                   'film': {'type': 'hdrfilm', 'width': RES[0], 'height': RES[1],
+                            'rfilter': {'type': rfilter}},
+                   'sampler': {'type': 'independent', 'sample_count': spp}},
+        'sun': {'type': 'directional', 'direction': [0.2, -1, -0.3], 'irradiance': 3.0},
+        'plane': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(2.5),
+                  'bsdf': {'type': 'diffuse', 'reflectance': texture}}}
+    if second_bsdf:       # a second BSDF makes si.bsdf() a real symbolic call
+        d['ball'] = {'type': 'sphere', 'center': [1.6, 0.3, 0.8], 'radius': 0.25,
+                     'bsdf': {'type': 'roughplastic'}}
+    return d
+
+
+def box_texture(rng, size=32, tiles=3.0, **kw):
+    return {'type': 'pbrt_imagemap', 'filter': 'box',
+            'data': mi.TensorXf(rng.random((size, size, 3)).astype(np.float32)),
+            'uscale': tiles, 'vscale': tiles, **kw}
+
+
+def cast(scene, pos):
+    sensor = scene.sensors()[0]
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
+                                            mi.Point2f(0.5), True)
+    return scene.ray_intersect(mi.Ray3f(ray))
+
+
+def interior_pixels(scene):
+    """Pixels whose centre and four corners all hit the plane (a mask of shape (H, W))."""
+    w, h = RES
+    ok = np.ones((h, w), bool)
+    ys, xs = np.mgrid[0:h, 0:w]
+    for ox, oy in ((0, 0), (1, 0), (0, 1), (1, 1), (0.5, 0.5)):
+        pos = np.stack([(xs.ravel() + ox) / w, (ys.ravel() + oy) / h], 1)
+        si = cast(scene, pos)
+        hit = A(si.is_valid()) & (np.abs(A(si.p)[:, 1]) < 1e-4)
+        ok &= hit.reshape(h, w)
+    return ok
+
+
+def test_footprint_matches_ray_casts_through_pixel_corners(rng):
+    """uv of the centre ray and of the four corner rays against the footprint's formula
+    uv_c + (a·D0 + b·D1)/(1 + a·g + b·h), a, b = ±1/2 — exact for a plane under a pinhole, so
+    the tolerance is float32 rounding of uv (1e-5 of the uv range, against footprints of
+    ~1e-2)."""
+    from mitsuba_pbrt_tex import pixel
+    scene = mi.load_dict(scene_dict(box_texture(rng)))
+    sensor = scene.sensors()[0]
+    mask = interior_pixels(scene)
+    ys, xs = np.nonzero(mask)
+    n = len(xs)
+    assert n > 100
+    jitter = rng.uniform(0.02, 0.98, (n, 2))
+    pos = np.stack([(xs + jitter[:, 0]) / RES[0], (ys + jitter[:, 1]) / RES[1]], 1)
+    si = cast(scene, pos)
+    fp = pixel.pixel_footprint(sensor, si)
+    assert A(fp.ok).all()
+    centre = A(cast(scene, np.stack([(xs + 0.5) / RES[0], (ys + 0.5) / RES[1]], 1)).uv)
+    np.testing.assert_allclose(A(fp.uv_c), centre, atol=1e-5)
+    d0, d1, g, h = A(fp.d0), A(fp.d1), A(fp.g), A(fp.h)
+    assert np.abs(h).max() > 0.02          # perspective is visible in this view
+    for a, b in ((-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)):
+        corner = A(cast(scene, np.stack([(xs + 0.5 + a) / RES[0], (ys + 0.5 + b) / RES[1]], 1)).uv)
+        predicted = centre + (a * d0 + b * d1) / (1 + a * g + b * h)[:, None]
+        np.testing.assert_allclose(predicted, corner, atol=1e-5)
+    # secondary rays (not from the camera) are not pixel hits
+    ray = mi.Ray3f(mi.Point3f(0.5, 2.0, 0.5), dr.normalize(mi.Vector3f(0.1, -1, 0.05)))
+    assert not A(pixel.pixel_footprint(sensor, scene.ray_intersect(ray)).ok).any()
+
+
+@pytest.mark.parametrize('mode', ['symbolic', 'symbolic-one-bsdf', 'wavefront'])
+def test_one_spp_interior_pixels_equal_between_seeds(mode, rng):
+    """With footprint=pixel every sample of a fully covered pixel sees the same texture value
+    (the lighting of the plane is constant), so two 1-spp renders agree there: < 1e-4 (float32
+    rounding of the pixel reconstruction; the sample-centred box differs by ~0.05)."""
+    scene = mi.load_dict(scene_dict(box_texture(rng), second_bsdf=mode != 'symbolic-one-bsdf'))
+    mask = interior_pixels(scene)
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    old = [dr.flag(f) for f in flags]
+    try:
+        if mode == 'wavefront':
+            for f in flags:
+                dr.set_flag(f, False)
+        a = np.array(mi.render(scene, spp=1, seed=1))
+        b = np.array(mi.render(scene, spp=1, seed=2))
+    finally:
+        for f, v in zip(flags, old):
+            dr.set_flag(f, v)
+    assert mask.sum() > 100
+    diff = np.abs(a - b)[mask]
+    assert diff.max() < 1e-4, diff.max()
+    sample = mi.load_dict(scene_dict(box_texture(rng), footprint='sample'))
+    c = np.array(mi.render(sample, spp=1, seed=1)) - np.array(mi.render(sample, spp=1, seed=2))
+    assert np.abs(c[mask]).max() > 1e-2          # the test can fail: sampling differs
+
+
+def test_pixel_values_equal_high_spp_pixel_average(rng):
+    """Interior pixels at 1 spp against the pixel average of the same texture point-sampled
+    (bilinear at level 0, no footprint) under pbrt_path at 1024 spp, estimated in two halves:
+    the difference is within 4× the reference's own noise plus 2e-3 (the parallelogram
+    approximation of the pixel's projective footprint, second order in g, h ≈ 0.05)."""
+    tex = box_texture(rng, size=16, tiles=2.0)
+    scene = mi.load_dict(scene_dict(tex))
+    mask = interior_pixels(scene)
+    img = np.array(mi.render(scene, spp=1, seed=3))
+    ref_tex = dict(tex, filter='bilinear')
+    ref_scene = mi.load_dict({**scene_dict(ref_tex, footprint='sample'),
+                              'integrator': {'type': 'pbrt_path', 'max_depth': 2,
+                                             'texture_differentials': False}})
+    halves = [np.array(mi.render(ref_scene, spp=512, seed=10 + k)) for k in range(2)]
+    ref = 0.5 * (halves[0] + halves[1])
+    noise = np.sqrt(np.mean((halves[0] - halves[1])[mask] ** 2)) / 2
+    err = np.sqrt(np.mean((img - ref)[mask] ** 2))
+    print(f"pixel-mode 1 spp RMSE {err:.5f}, reference noise {noise:.5f}")
+    assert err < 4 * noise + 2e-3, (err, noise)
+
+
+def test_pixel_footprint_errors(rng):
+    with pytest.raises(RuntimeError) as e:
+        mi.render(mi.load_dict(scene_dict(box_texture(rng), rfilter='gaussian')), spp=1)
+    text = str(e.value) + str(getattr(e.value, '__cause__', ''))
+    import traceback
+    text += ''.join(traceback.format_exception(e.value))
+    for word in ('pbrt_path', '"footprint"', '"pixel"', 'box', 'GaussianFilter', 'sample, pixel'):
+        assert word in text, word
+    with pytest.raises(RuntimeError) as e:
+        mi.load_dict({'type': 'pbrt_path', 'footprint': 'centre'})
+    for word in ('pbrt_path', '"footprint"', 'centre', 'sample, pixel'):
+        assert word in str(e.value), word
+
+
+def test_texel_gradients_through_pixel_footprint(rng):
+    """Backward-mode texel gradients of a footprint=pixel render against central finite
+    differences at the gradient seed (the project's check_gradient, 2%)."""
+    import test_gradients as tg
+    d = scene_dict(box_texture(rng, size=16), second_bsdf=False)
+    d['sensor']['film'].update(width=tg.RES, height=tg.RES)
+    d['integrator']['max_depth'] = 3
+    tg.check_gradient(mi.load_dict(d), 'plane.bsdf.reflectance.data', rng)
+
+
+def _edge_pixels(scene):
+    """Pixels whose centre and corner rays disagree about the surface (independent of the
+    integrator's test: shapes compared through the hit's y = 0 plane and validity)."""
+    w, h = RES
+    ys, xs = np.mgrid[0:h, 0:w]
+    keys = []
+    for ox, oy in ((0.5, 0.5), (0, 0), (1, 0), (0, 1), (1, 1)):
+        pos = np.stack([(xs.ravel() + ox) / w, (ys.ravel() + oy) / h], 1)
+        si = cast(scene, pos)
+        on_plane = A(si.is_valid()) & (np.abs(A(si.p)[:, 1]) < 1e-4)
+        keys.append(np.where(A(si.is_valid()), np.where(on_plane, 1, 2), 0))
+    keys = np.array(keys)
+    return (keys != keys[0]).any(0).reshape(h, w)
+
+
+@pytest.mark.parametrize('wavefront', [False, True])
+def test_silhouette_samples_only_in_edge_pixels(wavefront, rng):
+    """silhouette_spp adds paths only where a pixel crosses a silhouette: elsewhere the image is
+    unchanged (same random numbers: identical), and the edge pixels' error against a 512-spp
+    pixel average drops by more than half (1 path → 17 per edge pixel)."""
+    tex = box_texture(rng, size=16, tiles=2.0)
+    base = scene_dict(tex)
+    plain = mi.load_dict(base)
+    extra = mi.load_dict({**base, 'integrator': {**base['integrator'], 'silhouette_spp': 16}})
+    edge = _edge_pixels(plain)
+    assert 10 < edge.sum() < edge.size / 3
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    old = [dr.flag(f) for f in flags]
+    try:
+        if wavefront:
+            for f in flags:
+                dr.set_flag(f, False)
+        a = np.array(mi.render(plain, spp=1, seed=4))
+        b = np.array(mi.render(extra, spp=1, seed=4))
+    finally:
+        for f, v in zip(flags, old):
+            dr.set_flag(f, v)
+    np.testing.assert_array_equal(a[~edge], b[~edge])
+    ref_scene = mi.load_dict({**scene_dict(dict(tex, filter='bilinear'), footprint='sample'),
+                              'integrator': {'type': 'pbrt_path', 'max_depth': 2,
+                                             'texture_differentials': False}})
+    ref = np.array(mi.render(ref_scene, spp=512, seed=11))
+    err_a = np.sqrt(np.mean((a - ref)[edge] ** 2))
+    err_b = np.sqrt(np.mean((b - ref)[edge] ** 2))
+    assert err_b < 0.5 * err_a, (err_a, err_b)
+
+
+def test_silhouette_samples_refuse_gradients(rng):
+    d = scene_dict(box_texture(rng, size=8))
+    d['integrator']['silhouette_spp'] = 4
+    scene = mi.load_dict(d)
+    params = mi.traverse(scene)
+    dr.enable_grad(params['plane.bsdf.reflectance.data'])
+    params.update()
+    with pytest.raises(Exception) as e:
+        img = mi.render(scene, params, spp=1, seed=1, seed_grad=2)
+        dr.backward(dr.sum(img, axis=None))
+    import traceback
+    text = ''.join(traceback.format_exception(e.value))
+    assert '"silhouette_spp"' in text and 'primal' in text
+
+
+@pytest.mark.parametrize('footprint', ['sample', 'pixel'])
+def test_frozen_steps_with_box_equal_unfrozen(footprint, rng):
+    """dr.freeze over render + backward (Mitsuba's frozen-optimisation pattern, as
+    test_gradient_workflows does for the other filters): the box tables are rebuilt by
+    params.update() outside the frozen function and reach the replayed kernels — losses and
+    texel gradients equal the unfrozen ones (float32 rounding: 1e-5)."""
+    key = 'plane.bsdf.reflectance.data'
+    texels = rng.random((8, 8, 3)).astype(np.float32)
+
+    def run(frozen, steps=4):
+        d = scene_dict({'type': 'pbrt_imagemap', 'filter': 'box', 'data': mi.TensorXf(texels),
+                        'uscale': 3.0, 'vscale': 3.0}, footprint=footprint, second_bsdf=False)
+        scene = mi.load_dict(d)
+
+        def step(scene, seed):
+            params = mi.traverse(scene)
+            params.keep(key)
+            image = mi.render(scene, params, spp=2, seed=seed)
+            loss = dr.mean(dr.square(image - 0.25), axis=None)
+            dr.backward(loss)
+            return loss
+
+        fn = dr.freeze(step) if frozen else step
+        params = mi.traverse(scene)
+        params.keep(key)
+        opt = mi.ad.Adam(lr=0.05)
+        opt[key] = params[key]
+        out = []
+        for k in range(steps):
+            params.update(opt)
+            loss = fn(scene, mi.UInt32(k))
+            out.append((float(np.array(loss).ravel()[0]), np.array(dr.grad(opt[key]))))
+            opt.step()
+        return out, (fn.n_recordings if frozen else None)
+
+    plain, _ = run(False)
+    frozen, recordings = run(True)
+    assert recordings < len(frozen)
+    for (loss_p, grad_p), (loss_f, grad_f) in zip(plain, frozen):
+        assert np.abs(grad_p).sum() > 0
+        assert loss_f == pytest.approx(loss_p, rel=1e-5)
+        np.testing.assert_allclose(grad_f, grad_p, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize('height', [0.0, 1e-4, 0.05])
+def test_hard_cases_camera_in_or_near_the_plane_stay_finite(height, rng):
+    """Camera in the plane (every hit grazing or none), a hair above it, and low over it, with
+    silhouette samples: finite images, within [0, 3/π] (texels in [0, 1], a diffuse plane under a
+    sun of irradiance 3, no other light)."""
+    d = scene_dict(box_texture(rng, size=8, tiles=50.0))
+    d['sensor']['to_world'] = T().look_at([0.2, height, 2.4], [0, height * 0.5, -3], [0, 1, 0])
+    d['integrator']['silhouette_spp'] = 4
+    img = np.array(mi.render(mi.load_dict(d), spp=1, seed=1))
+    assert np.isfinite(img).all()
+    assert img.min() >= 0 and img.max() <= 3 / np.pi + 1e-4
