@@ -160,6 +160,15 @@ def test_spherical_near_seam_and_pole(rng):
              h=1e-5, rtol=2e-2, atol=5e-2)
 
 
+def test_spherical_phi_starts_at_zero_on_the_positive_x_half_plane():
+    """φ ∈ [0, 2π): points with y = 0, x > 0 have t = 0 exactly (not 1), just below them
+    t → 1, just above t → 0."""
+    p = np.array([[1.0, 0.0, 0.3], [2.0, 0.0, -1.0], [1.0, -1e-4, 0.0], [1.0, 1e-4, 0.0]])
+    t = st_of(SphericalMapping(), p)[:, 1]
+    assert t[0] == 0.0 and t[1] == 0.0
+    assert t[2] == pytest.approx(1.0, abs=1e-4) and t[3] == pytest.approx(0.0, abs=1e-4)
+
+
 def test_spherical_finite_at_poles_and_origin():
     p = np.array([[0, 0, 1.0], [0, 0, -3.0], [0, 0, 0.0]])
     tc = SphericalMapping().map(ctx_from(p=p, dpdx=np.ones((3, 3)), dpdy=np.ones((3, 3))))
@@ -184,6 +193,19 @@ def test_cylindrical_formula_and_derivatives(rng):
     check_fd(CylindricalMapping(), p, rng.normal(size=p.shape), h=1e-3)
 
 
+def test_cylindrical_uses_inverse_of_to_world(rng):
+    """A rotation that moves the cylinder's axis and a translation: (s, t) are the formula at
+    the texture-space point (inverse transform, numpy), derivatives as central differences."""
+    to_world = mi.ScalarTransform4f().translate([0.5, -1, 2]) @ mi.ScalarTransform4f().rotate([1, 0, 0], 70)
+    p = random_points(rng, 100)
+    inv = np.array(to_world.inverse().matrix)
+    pt = p @ inv[:3, :3].T + inv[:3, 3]
+    keep = np.hypot(pt[:, 0], pt[:, 1]) > 0.2                    # away from the axis
+    want = np.stack([(math.pi + np.arctan2(pt[:, 1], pt[:, 0])) / (2 * math.pi), pt[:, 2]], 1)
+    np.testing.assert_allclose(st_of(CylindricalMapping(to_world), p)[keep], want[keep], atol=5e-6)
+    check_fd(CylindricalMapping(to_world), p[keep], rng.normal(size=p[keep].shape), h=1e-3)
+
+
 def test_cylindrical_near_seam_and_axis():
     # the seam is at atan2 = ±π (x < 0, y ≈ 0): pbrt-v3 fixed the wrong component there
     seam = np.array([[-1.0, 1e-2, 0.3], [-2.0, -5e-3, 1.7]])
@@ -206,6 +228,13 @@ def test_planar_formula_and_derivatives(rng):
     want = np.stack([0.25 + p_tex @ v1, -0.75 + p_tex @ v2], 1)
     np.testing.assert_allclose(st_of(m, p), want, atol=1e-5)
     check_fd(m, p, rng.normal(size=p.shape), h=1e-2, rtol=1e-3, atol=1e-4)
+
+
+def test_planar_defaults_have_no_offset(rng):
+    """``PlanarMapping(v1, v2)`` without offsets: s = v1·p, t = v2·p exactly (float32)."""
+    p = rng.normal(size=(10, 3))
+    want = np.stack([p @ [1.0, 2.0, 0.0], p @ [0.0, -1.0, 0.5]], 1)
+    np.testing.assert_allclose(st_of(PlanarMapping([1, 2, 0], [0, -1, 0.5]), p), want, atol=1e-5)
 
 
 def test_point_transform_mapping(rng):
