@@ -174,6 +174,23 @@ def test_spherical_finite_at_poles_and_origin():
     tc = SphericalMapping().map(ctx_from(p=p, dpdx=np.ones((3, 3)), dpdy=np.ones((3, 3))))
     for a in (tc.st, tc.dsdx, tc.dsdy, tc.dtdx, tc.dtdy):
         assert np.isfinite(A(a)).all()
+    # the documented values (mapping.py, deviation 4): where ∇θ or ∇φ is undefined the terms
+    # are 0 — at the poles and the origin every derivative is 0; θ = 0, π at the poles
+    for a in (tc.dsdx, tc.dsdy, tc.dtdx, tc.dtdy):
+        np.testing.assert_array_equal(A(a), 0.0)
+    np.testing.assert_allclose(A(tc.st), [[0, 0], [1, 0], [0, 0]], atol=1e-7)
+    cyl = CylindricalMapping().map(ctx_from(p=p, dpdx=np.ones((3, 3)), dpdy=np.ones((3, 3))))
+    np.testing.assert_array_equal(A(cyl.dsdx), 0.0)
+    np.testing.assert_array_equal(A(cyl.dtdx), 1.0)
+
+
+def test_uv_mapping_defaults_are_identity(rng):
+    uv = rng.uniform(-1, 2, (8, 2))
+    duv = rng.normal(size=(8, 4))
+    tc = UVMapping().map(ctx_from(uv=uv, duv=duv))
+    np.testing.assert_allclose(A(tc.st), uv, atol=1e-7)
+    np.testing.assert_allclose(np.stack([A(tc.dsdx), A(tc.dsdy), A(tc.dtdx), A(tc.dtdy)], 1), duv,
+                               atol=1e-7)
 
 
 def test_spherical_uses_inverse_of_to_world(rng):
