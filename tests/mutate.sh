@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Mutation check of one module (mutmut), run by hand while developing — not in CI (too slow on
 # 2 cores). Usage, from the repository root:
-#     bash tests/mutate.sh mitsuba_pbrt_tex/wrap.py tests/test_wrap_reference.py tests/test_imagemap.py
+#     bash tests/mutate.sh mitsuba_pbrt_tex/wrap.py tests/test_wrap.py tests/test_imagemap.py
+# MUTANTS="name1 name2" restricts the run to those mutants (e.g. the survivors of a first run,
+# re-checked with more test files).
 # The working tree (tests included, committed or not) is copied to a scratch folder
 # ($MUTATE_DIR, default /tmp/mutate-<module>) so that editing the tree while it runs is safe; one
 # worker, nice 15. Results: `cd $MUTATE_DIR && ../path/.venv/bin/mutmut results` (the script
@@ -36,5 +38,5 @@ cd "$DIR"
   echo "    scenes"
 } > setup.cfg
 rm -f pyproject.toml.bak
-nice -n 15 "$ROOT/.venv/bin/mutmut" run --max-children 1 || true
+nice -n 15 "$ROOT/.venv/bin/mutmut" run --max-children 1 ${MUTANTS:-} || true
 "$ROOT/.venv/bin/mutmut" results --all true 2>/dev/null || "$ROOT/.venv/bin/mutmut" results
