@@ -200,6 +200,18 @@ def test_checkerboard_zero_differentials_are_point_samples(rng):
         np.testing.assert_allclose(A(tex.eval_1(make_si(uv))), np.where(even, 1.0, 0.0))
 
 
+def test_checkerboard_non_finite_coordinates_and_widths_count_as_zero():
+    """Non-finite coordinates and footprint widths are replaced by 0 before filtering (NaN
+    would otherwise reach the weight): a NaN or infinite s or t lies in the even cell at 0, a
+    NaN width is a point sample. Values: tex1 = 1 there, for every AA mode."""
+    nan, inf = float('nan'), float('inf')
+    uv = np.array([[nan, 0.5], [0.5, inf], [-inf, nan], [0.5, 0.5]])
+    d = np.array([[0, 0], [0, 0], [0, 0], [nan, nan]])
+    for aamode in ('none', 'box', 'triangle'):
+        tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode})
+        np.testing.assert_array_equal(A(tex.eval_1(make_si(uv, d, d))), 1.0)
+
+
 def test_checkerboard_nested_only_where_needed(rng):
     """A nested texture that is infinite never leaks where its weight is 0."""
     inf_tex = {'type': 'pbrt_scale', 'tex': 3e38, 'scale': 10.0}
