@@ -200,6 +200,22 @@ def test_checkerboard_zero_differentials_are_point_samples(rng):
         np.testing.assert_allclose(A(tex.eval_1(make_si(uv))), np.where(even, 1.0, 0.0))
 
 
+def test_checkerboard_box_with_two_edges_in_the_footprint(rng):
+    """Box half-widths 0.5–1 (up to two cell edges inside the footprint, the closed form's
+    general case) along s, t point-sampled at a cell centre: tex2's weight is (1 - E[c(s)])/2
+    with E the exact mean of the square wave, (F(s + r) - F(s - r)) / 2r, F(x) = 1 - |x mod 2
+    - 1| its integral. Float32 closed form with r ≥ 1/2: 1e-5."""
+    n = 400
+    s = f32(rng.uniform(-6, 6, n))
+    r = f32(rng.uniform(0.5, 1.0, n))
+    F = lambda x: 1 - np.abs(np.mod(x, 2) - 1)
+    want = (1 - (F(s + r) - F(s - r)) / (2 * r)) / 2
+    tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'box', 'tex1': 0.0, 'tex2': 1.0})
+    uv = np.stack([s, np.full(n, 0.5)], 1)
+    got = A(tex.eval_1(make_si(uv, np.stack([r, np.zeros(n)], 1), np.zeros((n, 2)))))
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
 def test_checkerboard_non_finite_coordinates_and_widths_count_as_zero():
     """Non-finite coordinates and footprint widths are replaced by 0 before filtering (NaN
     would otherwise reach the weight): a NaN or infinite s or t lies in the even cell at 0, a
