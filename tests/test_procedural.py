@@ -66,6 +66,33 @@ def test_fbm_and_turbulence_match_reference(kind, omega, octaves, rng):
     assert np.all(np.isfinite(got))
 
 
+@pytest.mark.parametrize('omega', [1.0, 2.0])
+def test_turbulence_with_roughness_one_and_above(omega, rng):
+    """ω = 1 (the clamped octaves' geometric series degenerates to k terms) and ω = 2: the
+    reference sums the clamped octaves' 0.2·ωⁱ one by one. 1e-5 relative to the largest value
+    (sums of up to 8 terms growing as 2ⁱ)."""
+    n = 200
+    p = f32(rng.uniform(-20, 20, (n, 3)))
+    dpdx, dpdy = footprints(rng, n, lo=1e-3, hi=1.0)
+    V = lambda a: mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    got = A(noise_lib.turbulence(mi.Point3f(p[:, 0], p[:, 1], p[:, 2]), V(dpdx), V(dpdy), omega, 8))
+    want = rn.turbulence(p, dpdx, dpdy, omega, 8)
+    np.testing.assert_allclose(got, want, atol=1e-5 * np.abs(want).max())
+
+
+def test_noise_nan_footprint_is_a_point_sample(rng):
+    """NaN differentials (both) count as a zero footprint — every octave — like pbrt-v4's
+    sanitised partials elsewhere (non-finite → 0); pbrt itself leaves this undefined."""
+    n = 50
+    p = f32(rng.uniform(-20, 20, (n, 3)))
+    V = lambda a: mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    P = mi.Point3f(p[:, 0], p[:, 1], p[:, 2])
+    nan = V(np.full((n, 3), np.nan))
+    zero = V(np.zeros((n, 3)))
+    for fn in (noise_lib.fbm, noise_lib.turbulence):
+        np.testing.assert_array_equal(A(fn(P, nan, nan, 0.5, 8)), A(fn(P, zero, zero, 0.5, 8)))
+
+
 @pytest.mark.parametrize('name', ['pbrt_fbm', 'pbrt_wrinkled', 'pbrt_windy', 'pbrt_marble'])
 @pytest.mark.parametrize('aamode', ['clamp', 'none'])
 def test_noise_plugins_match_reference(name, aamode, rng):
