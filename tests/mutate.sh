@@ -27,7 +27,10 @@ cd "$DIR"
   echo "forkserver_warmup = none"
   # not mutated (not scored): error-message text and descriptions, whose tests are the
   # error tests; a statement starting on a matching line is skipped whole
-  printf 'do_not_mutate_patterns =\n    ^\\s*raise\\b\n    def describe\\(\n    def to_string\\(\n'
+  # (MUTATE_ALL=1 keeps them, so mutant names match a run made without these patterns)
+  if [ -z "${MUTATE_ALL:-}" ]; then
+    printf 'do_not_mutate_patterns =\n    ^\\s*raise\\b\n    def describe\\(\n    def to_string\\(\n'
+  fi
   echo "timeout_multiplier = 4.0"
   echo "timeout_constant = 60.0"
   printf 'pytest_add_cli_args =\n    -q\n    -p\n    no:cacheprovider\n' 
