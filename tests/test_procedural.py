@@ -45,6 +45,23 @@ def test_perlin_noise_matches_reference(rng):
     assert np.max(np.abs(got[:100])) <= 1e-6
 
 
+def test_perlin_noise_far_and_non_finite_coordinates(rng):
+    """pbrt-v4 reduces each coordinate with C's fmod(x, 2^30) (keeping the sign) before the
+    lattice arithmetic: noise at ±(k·2^30 + r) equals noise at ±r (r = 768, exactly
+    representable at both magnitudes in float32); a non-finite coordinate is replaced by 0
+    (the package's guard) — compared exactly, same float32 operations after the reduction."""
+    n = 20
+    yz = f32(rng.uniform(-5, 5, (n, 2)))
+    P = lambda x: mi.Point3f(mi.Float(x), mi.Float(yz[:, 0]), mi.Float(yz[:, 1]))
+    for big, small in ((3 * 2.0 ** 30 + 768, 768.0), (-(3 * 2.0 ** 30 + 768), -768.0)):
+        assert np.fmod(big, 2.0 ** 30) == small and float(np.float32(big)) == big
+        np.testing.assert_array_equal(A(noise_lib.noise(P(np.full(n, big)))),
+                                      A(noise_lib.noise(P(np.full(n, small)))))
+    for bad in (np.nan, np.inf, -np.inf):
+        np.testing.assert_array_equal(A(noise_lib.noise(P(np.full(n, bad)))),
+                                      A(noise_lib.noise(P(np.zeros(n)))))
+
+
 @pytest.mark.parametrize('kind', ['fbm', 'turbulence'])
 @pytest.mark.parametrize('omega,octaves', [(0.5, 8), (0.8, 5), (0.3, 12)])
 def test_fbm_and_turbulence_match_reference(kind, omega, octaves, rng):
