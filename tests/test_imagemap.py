@@ -750,3 +750,46 @@ def test_single_level_filters_select_level_under_anisotropic_footprints(filt, co
                                 np.floor(uv[k, 1] * hh).astype(int), 'repeat')
     assert clear.mean() > 0.95 and len(set(il[clear])) >= 5
     np.testing.assert_allclose(got[clear], want[clear], atol=1e-5)
+
+
+@pytest.mark.parametrize('mapping', ['planar', 'spherical'])
+def test_eval_1_grad_with_3d_mappings_matches_finite_differences(mapping, rng):
+    """``eval_1_grad`` through a mapping of p (not of uv): on a surface p(u, v) = p0 + u·dp_du +
+    v·dp_dv, the gradient in (u, v) is the central difference of ``eval_1`` as u, v move (and
+    p with them). h = 1e-4; lookups within 0.1 texel of a texel-centre line are excluded (the
+    bilinear gradient jumps there, and a step of h moves the spherical st by up to ~0.05
+    texel); float32 rounding of eval_1 gives ~6e-8/2e-4 ≈ 3e-4 absolute: rtol 1e-2 and atol
+    1e-3 of the largest gradient (~10 here)."""
+    res = 32
+    img = rng.random((res, res, 3))
+    kw = ({'v1': mi.ScalarVector3f(1.0, 0.5, 0.0), 'v2': mi.ScalarVector3f(-0.3, 1.0, 0.2)}
+          if mapping == 'planar' else {})
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img.astype(np.float32)),
+                        'filter': 'bilinear', 'mapping': mapping, **kw})
+    n = 300
+    p0 = np.array([0.3, -0.2, 0.9])
+    dp_du, dp_dv = np.array([0.8, 0.1, -0.2]), np.array([-0.1, 0.7, 0.3])
+    uv = rng.uniform(0, 1, (n, 2))
+
+    def si_at(uv_):
+        p = p0 + uv_[:, :1] * dp_du + uv_[:, 1:] * dp_dv
+        return make_si(uv_, p=p, dp_du=dp_du, dp_dv=dp_dv)
+
+    h = 1e-4
+    f = lambda shift: A(tex.eval_1(si_at(uv + shift)))
+    fd = np.stack([(f([h, 0]) - f([-h, 0])) / (2 * h), (f([0, h]) - f([0, -h])) / (2 * h)], 1)
+    got = A(tex.eval_1_grad(si_at(uv)))
+    # texel-centre lines: from the mapping's own st, recomputed in numpy
+    p = p0 + uv[:, :1] * dp_du + uv[:, 1:] * dp_dv
+    if mapping == 'planar':
+        s_, t_ = p @ [1.0, 0.5, 0.0], p @ [-0.3, 1.0, 0.2]
+    else:
+        r = np.linalg.norm(p, axis=1)
+        s_ = np.arccos(p[:, 2] / r) / math.pi
+        t_ = np.mod(np.arctan2(p[:, 1], p[:, 0]), 2 * math.pi) / (2 * math.pi)
+    ok = np.ones(n, bool)
+    for c in (s_, t_):
+        q = c * res - 0.5
+        ok &= np.abs(q - np.round(q)) > 0.1
+    assert ok.sum() > 80 and np.abs(fd[ok]).max() > 1
+    np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=1e-3 * np.abs(fd[ok]).max())
