@@ -116,12 +116,29 @@ def test_tangent_plane_offsets_and_least_squares(rng):
     np.testing.assert_allclose(duv[:, :1] * dp_du + duv[:, 1:] * dp_dv, dpdx, atol=1e-4)
 
 
+def test_offsets_of_rays_along_the_normal_from_either_side():
+    """Offset rays exactly along ±n (n·d = ±1, head-on from the front or from behind): valid,
+    and the offset is the in-plane displacement of the offset ray's origin, exactly."""
+    p, n = mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1)
+    for z, d in ((1.0, -1.0), (-1.0, 1.0)):
+        o_x, o_y = mi.Point3f(0.25, 0, z), mi.Point3f(0, -0.5, z)
+        dv = mi.Vector3f(0, 0, d)
+        dpdx, dpdy, ok = raydiff.tangent_plane_offsets(p, n, o_x, dv, o_y, dv, mi.Bool(True))
+        assert A(ok).all()
+        np.testing.assert_array_equal(A(dpdx).ravel(), [0.25, 0, 0])
+        np.testing.assert_array_equal(A(dpdy).ravel(), [0, -0.5, 0])
+
+
 def test_degenerate_cases_give_zero_not_nan():
     p, n = mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1)
     o = mi.Point3f(0, 0, 1)
     parallel = mi.Vector3f(1, 0, 0)                    # offset ray parallel to the plane
     dpdx, dpdy, ok = raydiff.tangent_plane_offsets(p, n, o, parallel, o, parallel, mi.Bool(True))
-    assert not A(ok).any() and np.all(A(dpdx) == 0)
+    assert not A(ok).any() and np.all(A(dpdx) == 0) and np.all(A(dpdy) == 0)
+    # a uv parametrisation whose normal-equation determinant rounds to 0 in float32 (not
+    # exactly rank 1): no partials, rather than garbage from a huge or unit inverse
+    duv_dx, duv_dy = raydiff.uv_partials(V([1, 1e-4, 0]), V([1, 0, 0]), V([0, 1, 0]), V([0, 1, 0]))
+    assert np.all(A(duv_dx) == 0) and np.all(A(duv_dy) == 0)
     duv_dx, duv_dy = raydiff.uv_partials(V([0, 0, 0]), V([0, 0, 0]), V([1, 0, 0]), V([0, 1, 0]))
     assert np.all(A(duv_dx) == 0) and np.all(A(duv_dy) == 0)
     huge = raydiff.uv_partials(V([1e-20, 0, 0]), V([0, 1e-20, 0]), V([1, 0, 0]), V([0, 1, 0]))
