@@ -156,7 +156,7 @@ def test_spp_scale():
 # ------------------------------------------------------------------------------------ camera approx.
 def _true_and_approx_footprints(fov, w, h, scale, rng, n=400):
     """At points a camera ray hits directly (a plane through the hit with a random normal facing
-    the camera, |cos| ≥ 0.3, at distance 1–10): the true footprint — Mitsuba's own one-pixel
+    the camera, |cos| ≥ 0.3, at distance 0.1–10): the true footprint — Mitsuba's own one-pixel
     ray differential of that camera ray, intersected with the plane in numpy — and the camera
     approximation's (``CameraFootprint.dp_dxy``)."""
     T = mi.ScalarTransform4f
@@ -167,7 +167,7 @@ def _true_and_approx_footprints(fov, w, h, scale, rng, n=400):
     ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
                                             mi.Point2f(0.5, 0.5))
     o, d, ox, dx, oy, dy = (A(v) for v in (ray.o, ray.d, ray.o_x, ray.d_x, ray.o_y, ray.d_y))
-    p = o + rng.uniform(1, 10, n)[:, None] * d
+    p = o + np.exp(rng.uniform(np.log(0.1), np.log(10), n))[:, None] * d
     nrm = normalize(rng.normal(size=(n, 3)))
     nrm = np.where(((nrm * d).sum(1) > 0)[:, None], -nrm, nrm)
     keep = (nrm * -d).sum(1) >= 0.3
@@ -202,6 +202,19 @@ def test_camera_approximation_matches_true_footprint_at_visible_points(rng):
     assert ratio.min() > 0.85 and ratio.max() < 1.10, (ratio.min(), ratio.max())
     for v in (ax, ay):
         assert np.all(np.abs((v * nrm).sum(1)) <= 1e-5 * np.linalg.norm(v, axis=1))
+
+
+def test_camera_approximation_is_zero_on_inactive_lanes(rng):
+    T = mi.ScalarTransform4f
+    sensor = mi.load_dict({'type': 'perspective', 'fov': 30,
+                           'to_world': T().look_at([1, 2, 3], [0, 0, 0], [0, 1, 0]),
+                           'film': {'type': 'hdrfilm', 'width': 8, 'height': 8}})
+    p = rng.normal(size=(10, 3))
+    active = np.arange(10) % 2 == 0
+    ax, ay = raydiff.CameraFootprint(sensor).dp_dxy(mi.Point3f(*p.T), mi.Normal3f(0, 1, 0), 1.0,
+                                                    mi.Bool(active))
+    for v in (A(ax), A(ay)):
+        assert np.all(v[~active] == 0) and np.all(np.abs(v[active]).sum(1) > 0)
 
 
 def test_camera_approximation_scales_with_spp_factor(rng):
