@@ -47,13 +47,15 @@ def test_perlin_noise_matches_reference(rng):
 
 def test_perlin_noise_far_and_non_finite_coordinates(rng):
     """pbrt-v4 reduces each coordinate with C's fmod(x, 2^30) (keeping the sign) before the
-    lattice arithmetic: noise at ±(k·2^30 + r) equals noise at ±r (r = 768, exactly
-    representable at both magnitudes in float32); a non-finite coordinate is replaced by 0
+    lattice arithmetic: noise at ±(k·2^30 + r) equals noise at ±r (r = 768 or 384, exactly
+    representable at those magnitudes in float32; without the reduction the lattice index of
+    2^30 + 384 would overflow int32 differently); a non-finite coordinate is replaced by 0
     (the package's guard) — compared exactly, same float32 operations after the reduction."""
     n = 20
     yz = f32(rng.uniform(-5, 5, (n, 2)))
     P = lambda x: mi.Point3f(mi.Float(x), mi.Float(yz[:, 0]), mi.Float(yz[:, 1]))
-    for big, small in ((3 * 2.0 ** 30 + 768, 768.0), (-(3 * 2.0 ** 30 + 768), -768.0)):
+    for big, small in ((3 * 2.0 ** 30 + 768, 768.0), (-(3 * 2.0 ** 30 + 768), -768.0),
+                       (2.0 ** 30 + 384, 384.0)):
         assert np.fmod(big, 2.0 ** 30) == small and float(np.float32(big)) == big
         np.testing.assert_array_equal(A(noise_lib.noise(P(np.full(n, big)))),
                                       A(noise_lib.noise(P(np.full(n, small)))))
