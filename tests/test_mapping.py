@@ -309,26 +309,32 @@ def test_unknown_mapping_names_plugin_parameter_and_choices():
 def test_mapping_parameters_reach_the_mapping_through_plugins(rng):
     """The factory (``mapping_2d``) as plugins use it: ``to_uv`` on a plugin is applied (pbrt_uv
     shows the fractional part of (s, t) = S·to_uv·(u, v) + d, formula in numpy), ``to_world`` is
-    accepted by spherical, cylindrical and planar and applied (texture space scaled 3×: the
-    formulas at p/3), and the plugin's description names the values it was given. 1e-5: float32
+    accepted by spherical, cylindrical and planar and applied (texture space moved and scaled
+    3×: the formulas at (p - t)/3; planar with its v1, v2 and offsets), and the plugin's
+    description names the values it was given. 1e-5: float32
     (s, t) of magnitude ≤ 5."""
     T = mi.ScalarTransform4f
     to_uv = T().translate([0.25, -0.5, 0]) @ T().scale([2.0, 3.0, 1])
-    tex = mi.load_dict({'type': 'pbrt_uv', 'uscale': 2.0, 'vdelta': 0.5, 'to_uv': to_uv})
+    tex = mi.load_dict({'type': 'pbrt_uv', 'uscale': 2.0, 'vscale': 0.5, 'udelta': 0.125,
+                        'vdelta': 0.5, 'to_uv': to_uv})
     uv = rng.uniform(0, 1, (16, 2))
     got = A(tex.eval(make_si(uv)))[:, :2]
-    want = np.stack([2.0 * (2.0 * uv[:, 0] + 0.25), 3.0 * uv[:, 1] - 0.5 + 0.5], 1)
+    want = np.stack([2.0 * (2.0 * uv[:, 0] + 0.25) + 0.125, 0.5 * (3.0 * uv[:, 1] - 0.5) + 0.5], 1)
     np.testing.assert_allclose(got, np.mod(want, 1.0), atol=1e-5)
-    assert 'uv(uscale=2, vscale=1, udelta=0, vdelta=0.5, to_uv=custom)' in str(tex)
+    assert 'uv(uscale=2, vscale=0.5, udelta=0.125, vdelta=0.5, to_uv=custom)' in str(tex)
     assert 'to_uv' not in str(mi.load_dict({'type': 'pbrt_uv'}))
     p = rng.normal(size=(16, 3))
+    to_world = T().translate([0.5, -0.25, 0.75]) @ T().scale(3.0)
+    planar = {'v1': mi.ScalarVector3f(1, 0.5, 0), 'v2': mi.ScalarVector3f(0, -0.5, 2),
+              'udelta': 0.25, 'vdelta': -0.125}
     for kind in ('spherical', 'cylindrical', 'planar'):
-        t = mi.load_dict({'type': 'pbrt_uv', 'mapping': kind, 'to_world': T().scale(3.0)})
+        t = mi.load_dict({'type': 'pbrt_uv', 'mapping': kind, 'to_world': to_world,
+                          **(planar if kind == 'planar' else {})})
         assert f'mapping={kind}' in str(t)
         st = A(t.eval(make_si(p[:, :2], p=p)))[:, :2]
-        pt = p / 3.0
+        pt = (p - [0.5, -0.25, 0.75]) / 3.0
         if kind == 'planar':
-            want = pt[:, :2]
+            want = np.stack([0.25 + pt @ [1, 0.5, 0], -0.125 + pt @ [0, -0.5, 2]], 1)
         elif kind == 'cylindrical':
             want = np.stack([(math.pi + np.arctan2(pt[:, 1], pt[:, 0])) / (2 * math.pi), pt[:, 2]], 1)
         else:
