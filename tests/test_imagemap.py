@@ -793,3 +793,21 @@ def test_eval_1_grad_with_3d_mappings_matches_finite_differences(mapping, rng):
         ok &= np.abs(q - np.round(q)) > 0.1
     assert ok.sum() > 80 and np.abs(fd[ok]).max() > 1
     np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=1e-3 * np.abs(fd[ok]).max())
+
+
+def test_gamma_encodings_of_one_file_stay_apart():
+    """Textures of one PNG with ``gamma 2.2``, ``gamma 0.5`` and ``sRGB`` (cached per file and
+    encoding): each decodes with its own curve, (v/255)^G or sRGB, computed here from the raw
+    bytes (1e-6, float32 rounding); ``gamma 0`` is refused."""
+    image_cache.clear()
+    path = os.path.join(DATA, 'rgba_5x7.png')
+    raw = np.array(mi.Bitmap(path))[..., :3].astype(np.float64).reshape(-1, 3) / 255.0
+    uv = np.stack(np.meshgrid((np.arange(7) + 0.5) / 7, (np.arange(5) + 0.5) / 5), -1).reshape(-1, 2)
+    si = make_si(uv)
+    srgb = np.where(raw <= 0.04045, raw / 12.92, ((raw + 0.055) / 1.055) ** 2.4)
+    texs = {enc: mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point',
+                               'encoding': enc}) for enc in ('gamma 2.2', 'gamma 0.5', 'sRGB')}
+    for enc, want in (('gamma 2.2', raw ** 2.2), ('gamma 0.5', raw ** 0.5), ('sRGB', srgb)):
+        np.testing.assert_allclose(A(texs[enc].eval(si)), want, atol=1e-6, err_msg=enc)
+    with pytest.raises(RuntimeError, match='"encoding"'):
+        mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'encoding': 'gamma 0'})
