@@ -823,3 +823,19 @@ def test_8bit_srgb_texels_are_identical_to_bitmap():
     h, w = np.array(mi.Bitmap(path)).shape[:2]
     si = make_si(_texel_centres(w, h))
     np.testing.assert_array_equal(A(o.eval(si)), A(b.eval(si)))
+
+
+@pytest.mark.parametrize('ext', ['exr', 'pfm'])
+def test_nonfinite_texels_of_a_file_replaced_with_warning(ext, capfd, rng, tmp_path):
+    """NaN and ±inf texels read from a float file (OpenEXR through the OpenEXR package, PFM
+    through ``mi.Bitmap``) become 0, with a warning giving their count; the others are the
+    file's values (point lookups at texel centres, exact)."""
+    img = rng.random((4, 6, 3)).astype(np.float32)
+    img[0, 1, 0], img[2, 3, :], img[3, 5, 2] = np.nan, np.inf, -np.inf
+    path = str(tmp_path / f'bad.{ext}')
+    mi.Bitmap(img, mi.Bitmap.PixelFormat.RGB).write(path)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    got = A(tex.eval(make_si(_texel_centres(6, 4)))).reshape(4, 6, 3)
+    np.testing.assert_array_equal(got, np.where(np.isfinite(img), img, 0))
+    captured = capfd.readouterr()
+    assert '5 non-finite texel value(s) replaced by 0' in captured.out + captured.err
