@@ -839,3 +839,18 @@ def test_nonfinite_texels_of_a_file_replaced_with_warning(ext, capfd, rng, tmp_p
     np.testing.assert_array_equal(got, np.where(np.isfinite(img), img, 0))
     captured = capfd.readouterr()
     assert '5 non-finite texel value(s) replaced by 0' in captured.out + captured.err
+
+
+@pytest.mark.parametrize('shape', [(1, 7), (5, 1), (1, 1)])
+def test_one_texel_wide_files_load_and_match_bitmap(shape, rng, tmp_path):
+    """Files one texel wide or high (or a single texel) are valid images: equal to Mitsuba's
+    ``bitmap`` of the same file (8-bit sRGB, nearest; ≤ 1e-6 as the parity tests)."""
+    path = str(tmp_path / 'thin.png')
+    px = rng.integers(0, 256, shape + (3,)).astype(np.uint8)
+    bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
+    bmp.set_srgb_gamma(True)
+    bmp.write(path)
+    si = make_si(rng.uniform(-1, 2, (50, 2)))
+    b = mi.load_dict({'type': 'bitmap', 'filename': path, 'filter_type': 'nearest'})
+    o = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    np.testing.assert_allclose(A(o.eval(si)), A(b.eval(si)), atol=1e-6)
