@@ -854,3 +854,18 @@ def test_one_texel_wide_files_load_and_match_bitmap(shape, rng, tmp_path):
     b = mi.load_dict({'type': 'bitmap', 'filename': path, 'filter_type': 'nearest'})
     o = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
     np.testing.assert_allclose(A(o.eval(si)), A(b.eval(si)), atol=1e-6)
+
+
+def test_ewa_with_a_zero_minor_axis_is_a_level0_bilinear_lookup(rng):
+    """pbrt: a footprint whose minor axis is exactly 0 (a line) is not clamped to the maximum
+    anisotropy but looked up bilinearly at level 0 — the numpy transcription does the same;
+    1e-5 (float32 texel coordinates, as test_zero_differentials_every_filter_is_bilinear_level0)."""
+    img = rng.random((32, 48, 3))
+    n = 100
+    uv = rng.uniform(0, 1, (n, 2))
+    ang = rng.uniform(0, math.pi, n)
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * 5.0 / 48
+    d1 = np.zeros((n, 2))
+    got = A(imagemap(img, filter='ewa').eval(make_si(uv, d0, d1)))
+    want, _ = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], d0, d1, 8.0, 'repeat')
+    np.testing.assert_allclose(got, want, atol=1e-5)
