@@ -749,3 +749,122 @@ def test_single_level_filters_select_level_under_anisotropic_footprints(filt, co
                                 np.floor(uv[k, 1] * hh).astype(int), 'repeat')
     assert clear.mean() > 0.95 and len(set(il[clear])) >= 5
     np.testing.assert_allclose(got[clear], want[clear], atol=1e-5)
+
+
+@pytest.mark.parametrize('mapping', ['planar', 'spherical'])
+def test_eval_1_grad_with_3d_mappings_matches_finite_differences(mapping, rng):
+    """``eval_1_grad`` through a mapping of p (not of uv): on a surface p(u, v) = p0 + u·dp_du +
+    v·dp_dv, the gradient in (u, v) is the central difference of ``eval_1`` as u, v move (and
+    p with them). h = 1e-4; lookups within 0.1 texel of a texel-centre line are excluded (the
+    bilinear gradient jumps there, and a step of h moves the spherical st by up to ~0.05
+    texel); float32 rounding of eval_1 gives ~6e-8/2e-4 ≈ 3e-4 absolute: rtol 1e-2 and atol
+    1e-3 of the largest gradient (~10 here)."""
+    res = 32
+    img = rng.random((res, res, 3))
+    kw = ({'v1': mi.ScalarVector3f(1.0, 0.5, 0.0), 'v2': mi.ScalarVector3f(-0.3, 1.0, 0.2)}
+          if mapping == 'planar' else {})
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img.astype(np.float32)),
+                        'filter': 'bilinear', 'mapping': mapping, **kw})
+    n = 300
+    p0 = np.array([0.3, -0.2, 0.9])
+    dp_du, dp_dv = np.array([0.8, 0.1, -0.2]), np.array([-0.1, 0.7, 0.3])
+    uv = rng.uniform(0, 1, (n, 2))
+
+    def si_at(uv_):
+        p = p0 + uv_[:, :1] * dp_du + uv_[:, 1:] * dp_dv
+        return make_si(uv_, p=p, dp_du=dp_du, dp_dv=dp_dv)
+
+    h = 1e-4
+    f = lambda shift: A(tex.eval_1(si_at(uv + shift)))
+    fd = np.stack([(f([h, 0]) - f([-h, 0])) / (2 * h), (f([0, h]) - f([0, -h])) / (2 * h)], 1)
+    got = A(tex.eval_1_grad(si_at(uv)))
+    # texel-centre lines: from the mapping's own st, recomputed in numpy
+    p = p0 + uv[:, :1] * dp_du + uv[:, 1:] * dp_dv
+    if mapping == 'planar':
+        s_, t_ = p @ [1.0, 0.5, 0.0], p @ [-0.3, 1.0, 0.2]
+    else:
+        r = np.linalg.norm(p, axis=1)
+        s_ = np.arccos(p[:, 2] / r) / math.pi
+        t_ = np.mod(np.arctan2(p[:, 1], p[:, 0]), 2 * math.pi) / (2 * math.pi)
+    ok = np.ones(n, bool)
+    for c in (s_, t_):
+        q = c * res - 0.5
+        ok &= np.abs(q - np.round(q)) > 0.1
+    assert ok.sum() > 80 and np.abs(fd[ok]).max() > 1
+    np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=1e-3 * np.abs(fd[ok]).max())
+
+
+def test_gamma_encodings_of_one_file_stay_apart():
+    """Textures of one PNG with ``gamma 2.2``, ``gamma 0.5`` and ``sRGB`` (cached per file and
+    encoding): each decodes with its own curve, (v/255)^G or sRGB, computed here from the raw
+    bytes (1e-6, float32 rounding); ``gamma 0`` is refused."""
+    image_cache.clear()
+    path = os.path.join(DATA, 'rgba_5x7.png')
+    raw = np.array(mi.Bitmap(path))[..., :3].astype(np.float64).reshape(-1, 3) / 255.0
+    uv = np.stack(np.meshgrid((np.arange(7) + 0.5) / 7, (np.arange(5) + 0.5) / 5), -1).reshape(-1, 2)
+    si = make_si(uv)
+    srgb = np.where(raw <= 0.04045, raw / 12.92, ((raw + 0.055) / 1.055) ** 2.4)
+    texs = {enc: mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point',
+                               'encoding': enc}) for enc in ('gamma 2.2', 'gamma 0.5', 'sRGB')}
+    for enc, want in (('gamma 2.2', raw ** 2.2), ('gamma 0.5', raw ** 0.5), ('sRGB', srgb)):
+        np.testing.assert_allclose(A(texs[enc].eval(si)), want, atol=1e-6, err_msg=enc)
+    with pytest.raises(RuntimeError, match='"encoding"'):
+        mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'encoding': 'gamma 0'})
+
+
+def test_8bit_srgb_texels_are_identical_to_bitmap():
+    """The package decodes 8-bit sRGB through the table Mitsuba's ``bitmap`` uses, so texel
+    values are bit-identical to ``bitmap``'s (the exact curve differs by up to 4.2e-7, which
+    the 1e-6 parity tests cannot see): point lookups at every texel centre, exact equality."""
+    path = os.path.join(DATA, 'srgb_11x9.png')
+    b = mi.load_dict({'type': 'bitmap', 'filename': path, 'filter_type': 'nearest'})
+    o = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    h, w = np.array(mi.Bitmap(path)).shape[:2]
+    si = make_si(_texel_centres(w, h))
+    np.testing.assert_array_equal(A(o.eval(si)), A(b.eval(si)))
+
+
+@pytest.mark.parametrize('ext', ['exr', 'pfm'])
+def test_nonfinite_texels_of_a_file_replaced_with_warning(ext, capfd, rng, tmp_path):
+    """NaN and ±inf texels read from a float file (OpenEXR through the OpenEXR package, PFM
+    through ``mi.Bitmap``) become 0, with a warning giving their count; the others are the
+    file's values (point lookups at texel centres, exact)."""
+    img = rng.random((4, 6, 3)).astype(np.float32)
+    img[0, 1, 0], img[2, 3, :], img[3, 5, 2] = np.nan, np.inf, -np.inf
+    path = str(tmp_path / f'bad.{ext}')
+    mi.Bitmap(img, mi.Bitmap.PixelFormat.RGB).write(path)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    got = A(tex.eval(make_si(_texel_centres(6, 4)))).reshape(4, 6, 3)
+    np.testing.assert_array_equal(got, np.where(np.isfinite(img), img, 0))
+    captured = capfd.readouterr()
+    assert '5 non-finite texel value(s) replaced by 0' in captured.out + captured.err
+
+
+@pytest.mark.parametrize('shape', [(1, 7), (5, 1), (1, 1)])
+def test_one_texel_wide_files_load_and_match_bitmap(shape, rng, tmp_path):
+    """Files one texel wide or high (or a single texel) are valid images: equal to Mitsuba's
+    ``bitmap`` of the same file (8-bit sRGB, nearest; ≤ 1e-6 as the parity tests)."""
+    path = str(tmp_path / 'thin.png')
+    px = rng.integers(0, 256, shape + (3,)).astype(np.uint8)
+    bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
+    bmp.set_srgb_gamma(True)
+    bmp.write(path)
+    si = make_si(rng.uniform(-1, 2, (50, 2)))
+    b = mi.load_dict({'type': 'bitmap', 'filename': path, 'filter_type': 'nearest'})
+    o = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    np.testing.assert_allclose(A(o.eval(si)), A(b.eval(si)), atol=1e-6)
+
+
+def test_ewa_with_a_zero_minor_axis_is_a_level0_bilinear_lookup(rng):
+    """pbrt: a footprint whose minor axis is exactly 0 (a line) is not clamped to the maximum
+    anisotropy but looked up bilinearly at level 0 — the numpy transcription does the same;
+    1e-5 (float32 texel coordinates, as test_zero_differentials_every_filter_is_bilinear_level0)."""
+    img = rng.random((32, 48, 3))
+    n = 100
+    uv = rng.uniform(0, 1, (n, 2))
+    ang = rng.uniform(0, math.pi, n)
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * 5.0 / 48
+    d1 = np.zeros((n, 2))
+    got = A(imagemap(img, filter='ewa').eval(make_si(uv, d0, d1)))
+    want, _ = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], d0, d1, 8.0, 'repeat')
+    np.testing.assert_allclose(got, want, atol=1e-5)

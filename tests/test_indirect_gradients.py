@@ -105,15 +105,8 @@ CASES = [('env', 'trilinear'), ('env', 'ewa'), ('wall', 'trilinear'), ('wall', '
          ('env', 'bilinear'), ('wall', 'bilinear')]
 
 
-KNOWN_LAZY_PYRAMID = pytest.mark.xfail(strict=False, reason=(
-    'known bug, being fixed by the lead: point/bilinear image `data` gradients are off (4% here, '
-    '10-14% elsewhere) in the user call order under pbrt_path (lazy pyramid)'))
-
-
-@pytest.mark.parametrize('integrator,kind,filt', [
-    pytest.param(i, k, f, marks=[KNOWN_LAZY_PYRAMID] if (i, k, f) == ('pbrt_path', 'wall', 'bilinear')
-                 else [])
-    for i in ('pbrt_path', 'prb') for k, f in CASES])
+@pytest.mark.parametrize('integrator,kind,filt',
+                         [(i, k, f) for i in ('pbrt_path', 'prb') for k, f in CASES])
 def test_texel_gradient_through_indirect_light(integrator, kind, filt, rng):
     scene = scene_of(kind, image_tex(rng, filt), integrator)
     ad, fd = check_indirect_gradient(scene, 'floor.bsdf.reflectance.data', rng)

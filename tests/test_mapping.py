@@ -160,11 +160,37 @@ def test_spherical_near_seam_and_pole(rng):
              h=1e-5, rtol=2e-2, atol=5e-2)
 
 
+def test_spherical_phi_starts_at_zero_on_the_positive_x_half_plane():
+    """φ ∈ [0, 2π): points with y = 0, x > 0 have t = 0 exactly (not 1), just below them
+    t → 1, just above t → 0."""
+    p = np.array([[1.0, 0.0, 0.3], [2.0, 0.0, -1.0], [1.0, -1e-4, 0.0], [1.0, 1e-4, 0.0]])
+    t = st_of(SphericalMapping(), p)[:, 1]
+    assert t[0] == 0.0 and t[1] == 0.0
+    assert t[2] == pytest.approx(1.0, abs=1e-4) and t[3] == pytest.approx(0.0, abs=1e-4)
+
+
 def test_spherical_finite_at_poles_and_origin():
     p = np.array([[0, 0, 1.0], [0, 0, -3.0], [0, 0, 0.0]])
     tc = SphericalMapping().map(ctx_from(p=p, dpdx=np.ones((3, 3)), dpdy=np.ones((3, 3))))
     for a in (tc.st, tc.dsdx, tc.dsdy, tc.dtdx, tc.dtdy):
         assert np.isfinite(A(a)).all()
+    # the documented values (mapping.py, deviation 4): where ∇θ or ∇φ is undefined the terms
+    # are 0 — at the poles and the origin every derivative is 0; θ = 0, π at the poles
+    for a in (tc.dsdx, tc.dsdy, tc.dtdx, tc.dtdy):
+        np.testing.assert_array_equal(A(a), 0.0)
+    np.testing.assert_allclose(A(tc.st), [[0, 0], [1, 0], [0, 0]], atol=1e-7)
+    cyl = CylindricalMapping().map(ctx_from(p=p, dpdx=np.ones((3, 3)), dpdy=np.ones((3, 3))))
+    np.testing.assert_array_equal(A(cyl.dsdx), 0.0)
+    np.testing.assert_array_equal(A(cyl.dtdx), 1.0)
+
+
+def test_uv_mapping_defaults_are_identity(rng):
+    uv = rng.uniform(-1, 2, (8, 2))
+    duv = rng.normal(size=(8, 4))
+    tc = UVMapping().map(ctx_from(uv=uv, duv=duv))
+    np.testing.assert_allclose(A(tc.st), uv, atol=1e-7)
+    np.testing.assert_allclose(np.stack([A(tc.dsdx), A(tc.dsdy), A(tc.dtdx), A(tc.dtdy)], 1), duv,
+                               atol=1e-7)
 
 
 def test_spherical_uses_inverse_of_to_world(rng):
@@ -182,6 +208,19 @@ def test_cylindrical_formula_and_derivatives(rng):
     want = np.stack([(math.pi + np.arctan2(p[:, 1], p[:, 0])) / (2 * math.pi), p[:, 2]], 1)
     np.testing.assert_allclose(st_of(CylindricalMapping(), p), want, atol=2e-6)
     check_fd(CylindricalMapping(), p, rng.normal(size=p.shape), h=1e-3)
+
+
+def test_cylindrical_uses_inverse_of_to_world(rng):
+    """A rotation that moves the cylinder's axis and a translation: (s, t) are the formula at
+    the texture-space point (inverse transform, numpy), derivatives as central differences."""
+    to_world = mi.ScalarTransform4f().translate([0.5, -1, 2]) @ mi.ScalarTransform4f().rotate([1, 0, 0], 70)
+    p = random_points(rng, 100)
+    inv = np.array(to_world.inverse().matrix)
+    pt = p @ inv[:3, :3].T + inv[:3, 3]
+    keep = np.hypot(pt[:, 0], pt[:, 1]) > 0.2                    # away from the axis
+    want = np.stack([(math.pi + np.arctan2(pt[:, 1], pt[:, 0])) / (2 * math.pi), pt[:, 2]], 1)
+    np.testing.assert_allclose(st_of(CylindricalMapping(to_world), p)[keep], want[keep], atol=5e-6)
+    check_fd(CylindricalMapping(to_world), p[keep], rng.normal(size=p[keep].shape), h=1e-3)
 
 
 def test_cylindrical_near_seam_and_axis():
@@ -206,6 +245,13 @@ def test_planar_formula_and_derivatives(rng):
     want = np.stack([0.25 + p_tex @ v1, -0.75 + p_tex @ v2], 1)
     np.testing.assert_allclose(st_of(m, p), want, atol=1e-5)
     check_fd(m, p, rng.normal(size=p.shape), h=1e-2, rtol=1e-3, atol=1e-4)
+
+
+def test_planar_defaults_have_no_offset(rng):
+    """``PlanarMapping(v1, v2)`` without offsets: s = v1·p, t = v2·p exactly (float32)."""
+    p = rng.normal(size=(10, 3))
+    want = np.stack([p @ [1.0, 2.0, 0.0], p @ [0.0, -1.0, 0.5]], 1)
+    np.testing.assert_allclose(st_of(PlanarMapping([1, 2, 0], [0, -1, 0.5]), p), want, atol=1e-5)
 
 
 def test_point_transform_mapping(rng):
@@ -257,3 +303,54 @@ def test_unknown_mapping_names_plugin_parameter_and_choices():
     msg = str(e.value)
     assert 'pbrt_uv' in msg and '"mapping"' in msg and '"sphere"' in msg
     assert 'uv, spherical, cylindrical, planar' in msg
+
+
+# ---------------------------------------------------------------------------------------- plugins
+def test_mapping_parameters_reach_the_mapping_through_plugins(rng):
+    """The factory (``mapping_2d``) as plugins use it: ``to_uv`` on a plugin is applied (pbrt_uv
+    shows the fractional part of (s, t) = S·to_uv·(u, v) + d, formula in numpy), ``to_world`` is
+    accepted by spherical, cylindrical and planar and applied (texture space moved and scaled
+    3×: the formulas at (p - t)/3; planar with its v1, v2 and offsets), and the plugin's
+    description names the values it was given. 1e-5: float32
+    (s, t) of magnitude ≤ 5."""
+    T = mi.ScalarTransform4f
+    to_uv = T().translate([0.25, -0.5, 0]) @ T().scale([2.0, 3.0, 1])
+    tex = mi.load_dict({'type': 'pbrt_uv', 'uscale': 2.0, 'vscale': 0.5, 'udelta': 0.125,
+                        'vdelta': 0.5, 'to_uv': to_uv})
+    uv = rng.uniform(0, 1, (16, 2))
+    got = A(tex.eval(make_si(uv)))[:, :2]
+    want = np.stack([2.0 * (2.0 * uv[:, 0] + 0.25) + 0.125, 0.5 * (3.0 * uv[:, 1] - 0.5) + 0.5], 1)
+    np.testing.assert_allclose(got, np.mod(want, 1.0), atol=1e-5)
+    assert 'uv(uscale=2, vscale=0.5, udelta=0.125, vdelta=0.5, to_uv=custom)' in str(tex)
+    assert 'to_uv' not in str(mi.load_dict({'type': 'pbrt_uv'}))
+    p = rng.normal(size=(16, 3))
+    to_world = T().translate([0.5, -0.25, 0.75]) @ T().scale(3.0)
+    planar = {'v1': mi.ScalarVector3f(1, 0.5, 0), 'v2': mi.ScalarVector3f(0, -0.5, 2),
+              'udelta': 0.25, 'vdelta': -0.125}
+    for kind in ('spherical', 'cylindrical', 'planar'):
+        t = mi.load_dict({'type': 'pbrt_uv', 'mapping': kind, 'to_world': to_world,
+                          **(planar if kind == 'planar' else {})})
+        assert f'mapping={kind}' in str(t)
+        st = A(t.eval(make_si(p[:, :2], p=p)))[:, :2]
+        pt = (p - [0.5, -0.25, 0.75]) / 3.0
+        if kind == 'planar':
+            want = np.stack([0.25 + pt @ [1, 0.5, 0], -0.125 + pt @ [0, -0.5, 2]], 1)
+        elif kind == 'cylindrical':
+            want = np.stack([(math.pi + np.arctan2(pt[:, 1], pt[:, 0])) / (2 * math.pi), pt[:, 2]], 1)
+        else:
+            want = spherical_st(pt)
+        np.testing.assert_allclose(st, np.mod(want, 1.0), atol=1e-5)
+
+
+@pytest.mark.parametrize('kind,param,value,allowed', [
+    ('spherical', 'to_uv', mi.ScalarTransform4f().scale(2.0), 'to_world'),
+    ('uv', 'to_world', mi.ScalarTransform4f().scale(2.0), 'uscale, vscale, to_uv, udelta, vdelta'),
+    ('planar', 'uscale', 2.0, 'v1, v2, udelta, vdelta, to_world'),
+    ('cylindrical', 'v2', mi.ScalarVector3f(0, 1, 0), 'to_world')])
+def test_parameters_of_another_mapping_are_errors_listing_the_right_ones(kind, param, value,
+                                                                          allowed):
+    with pytest.raises(RuntimeError) as e:
+        mi.load_dict({'type': 'pbrt_uv', 'mapping': kind, param: value})
+    msg = str(e.value)
+    assert f'parameter "{param}": does not apply to mapping "{kind}"' in msg
+    assert f'parameters of "{kind}": {allowed}' in msg

@@ -229,37 +229,42 @@ def test_second_bounce_diffuse_hits_get_finite_nonzero_partials():
     assert off.mean() < 1e-6
 
 
-def _dome_scene(radiance, spp_scale='pbrt'):
+def _dome_scene(radiance, card_bsdf):
     """Camera at the centre of an emitting sphere (R = 10, normals inward, not sampled by NEE)
-    looking down -z; a diffuse card at z = -1 covers the left half of the view. Pixels on the
-    right see the sphere directly (depth 0: the true camera-ray footprint); pixels on the card
-    see it after one diffuse bounce (depth 1: pbrt-v4's camera approximation). Every sphere
-    point is at distance R with its normal towards the camera, so the approximation gives one
-    footprint size everywhere. The sphere's poles are turned to ±x, away from the card's
+    looking down -z; a diffuse or glossy card at z = -1 covers the left half of the view.
+    Pixels on the right see the sphere directly (depth 0: the true camera-ray footprint);
+    pixels on the card see it after one bounce (depth 1: pbrt-v4's camera approximation).
+    Every sphere point is at distance R with its normal towards the camera, so the
+    approximation gives one footprint size everywhere. The sphere's poles are turned to ±x, away from the card's
     bounces."""
     return mi.load_dict({
         'type': 'scene', 'sensor': camera([0, 0, 0], [0, 0, -1], DOME_RES, DOME_RES, fov=DOME_FOV),
-        'integrator': {'type': 'pbrt_path', 'max_depth': 2, 'spp_scale': spp_scale},
+        'integrator': {'type': 'pbrt_path', 'max_depth': 2},
         'dome': {'type': 'sphere', 'radius': DOME_R, 'flip_normals': True,
                  'to_world': T().rotate([0, 1, 0], 90),
                  'emitter': {'type': 'area', 'radiance': radiance, 'sampling_weight': 0.0}},
         'card': {'type': 'rectangle',
                  'to_world': T().translate([-0.1, 0, -1]).scale([0.1, 0.3, 1]),
-                 'bsdf': {'type': 'diffuse', 'reflectance': 0.5}},
+                 'bsdf': card_bsdf},
         'dark': {'type': 'point', 'position': [0, 0, -0.5], 'intensity': 0.0}})
 
 
 DOME_R, DOME_FOV, DOME_RES = 10.0, 20.0, 16
 
 
+CARDS = {'diffuse': {'type': 'diffuse', 'reflectance': 0.5},
+         'glossy': {'type': 'roughconductor', 'alpha': 0.3}}
+
+
+@pytest.mark.parametrize('card', ['diffuse', 'glossy'])
 @pytest.mark.parametrize('spp', [1, 16, 64])
-def test_bounce_footprints_have_camera_ray_size_and_spp_scale(spp):
+def test_bounce_footprints_have_camera_ray_size_and_spp_scale(spp, card):
     """Footprints after a diffuse bounce vs an independent pinhole computation: the axis pixel
     of a 16-pixel, 20° camera subtends α = 2 tan(10°)/16, so a camera ray at distance R facing
     the surface has footprint size R·α; pbrt-v4 scales it by max(1/8, 1/√spp). The probe/ones
     ratio of two renders with the same seed gives the size exactly per pixel (same paths).
 
-    * after the bounce (card pixels): the approximation uses the smallest one-pixel
+    * after the diffuse or glossy bounce (card pixels): the approximation uses the smallest one-pixel
       differentials on the film (corner 14° off axis: ≥ cos² 14° = 0.94 of α per axis), so
       size ∈ [0.93, 1.01]·R·α·scale;
     * direct hits (right pixels): the true footprint R·α·cos^1.5 φ ∈ [0.91, 1.01]·R·α·scale.
@@ -268,9 +273,9 @@ def test_bounce_footprints_have_camera_ray_size_and_spp_scale(spp):
     scale = max(1 / 8, 1 / math.sqrt(spp))
     alpha = 2 * math.tan(math.radians(DOME_FOV / 2)) / DOME_RES
     want = DOME_R * alpha * scale
-    probe = np.array(mi.render(_dome_scene({'type': 'test_probe', 'mode': 'size'}), spp=spp,
-                               seed=5))[..., 0]
-    ones = np.array(mi.render(_dome_scene(1.0), spp=spp, seed=5))[..., 0]
+    probe = np.array(mi.render(_dome_scene({'type': 'test_probe', 'mode': 'size'}, CARDS[card]),
+                               spp=spp, seed=5))[..., 0]
+    ones = np.array(mi.render(_dome_scene(1.0, CARDS[card]), spp=spp, seed=5))[..., 0]
     card = np.zeros(ones.shape, bool)
     card[:, :DOME_RES // 2 - 1] = True                     # left of the card's edge (x = 0)
     card[[0, -1], :] = False                               # the card spans |y| < 0.3: all rows

@@ -45,6 +45,25 @@ def test_perlin_noise_matches_reference(rng):
     assert np.max(np.abs(got[:100])) <= 1e-6
 
 
+def test_perlin_noise_far_and_non_finite_coordinates(rng):
+    """pbrt-v4 reduces each coordinate with C's fmod(x, 2^30) (keeping the sign) before the
+    lattice arithmetic: noise at ±(k·2^30 + r) equals noise at ±r (r = 768 or 384, exactly
+    representable at those magnitudes in float32; without the reduction the lattice index of
+    2^30 + 384 would overflow int32 differently); a non-finite coordinate is replaced by 0
+    (the package's guard) — compared exactly, same float32 operations after the reduction."""
+    n = 20
+    yz = f32(rng.uniform(-5, 5, (n, 2)))
+    P = lambda x: mi.Point3f(mi.Float(x), mi.Float(yz[:, 0]), mi.Float(yz[:, 1]))
+    for big, small in ((3 * 2.0 ** 30 + 768, 768.0), (-(3 * 2.0 ** 30 + 768), -768.0),
+                       (2.0 ** 30 + 384, 384.0)):
+        assert np.fmod(big, 2.0 ** 30) == small and float(np.float32(big)) == big
+        np.testing.assert_array_equal(A(noise_lib.noise(P(np.full(n, big)))),
+                                      A(noise_lib.noise(P(np.full(n, small)))))
+    for bad in (np.nan, np.inf, -np.inf):
+        np.testing.assert_array_equal(A(noise_lib.noise(P(np.full(n, bad)))),
+                                      A(noise_lib.noise(P(np.zeros(n)))))
+
+
 @pytest.mark.parametrize('kind', ['fbm', 'turbulence'])
 @pytest.mark.parametrize('omega,octaves', [(0.5, 8), (0.8, 5), (0.3, 12)])
 def test_fbm_and_turbulence_match_reference(kind, omega, octaves, rng):
@@ -64,6 +83,33 @@ def test_fbm_and_turbulence_match_reference(kind, omega, octaves, rng):
     want = ref(p, dpdx, dpdy, omega, octaves)
     assert np.max(np.abs(got - want)) <= 1e-5
     assert np.all(np.isfinite(got))
+
+
+@pytest.mark.parametrize('omega', [1.0, 2.0])
+def test_turbulence_with_roughness_one_and_above(omega, rng):
+    """ω = 1 (the clamped octaves' geometric series degenerates to k terms) and ω = 2: the
+    reference sums the clamped octaves' 0.2·ωⁱ one by one. 1e-5 relative to the largest value
+    (sums of up to 8 terms growing as 2ⁱ)."""
+    n = 200
+    p = f32(rng.uniform(-20, 20, (n, 3)))
+    dpdx, dpdy = footprints(rng, n, lo=1e-3, hi=1.0)
+    V = lambda a: mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    got = A(noise_lib.turbulence(mi.Point3f(p[:, 0], p[:, 1], p[:, 2]), V(dpdx), V(dpdy), omega, 8))
+    want = rn.turbulence(p, dpdx, dpdy, omega, 8)
+    np.testing.assert_allclose(got, want, atol=1e-5 * np.abs(want).max())
+
+
+def test_noise_nan_footprint_is_a_point_sample(rng):
+    """NaN differentials (both) count as a zero footprint — every octave — like pbrt-v4's
+    sanitised partials elsewhere (non-finite → 0); pbrt itself leaves this undefined."""
+    n = 50
+    p = f32(rng.uniform(-20, 20, (n, 3)))
+    V = lambda a: mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    P = mi.Point3f(p[:, 0], p[:, 1], p[:, 2])
+    nan = V(np.full((n, 3), np.nan))
+    zero = V(np.zeros((n, 3)))
+    for fn in (noise_lib.fbm, noise_lib.turbulence):
+        np.testing.assert_array_equal(A(fn(P, nan, nan, 0.5, 8)), A(fn(P, zero, zero, 0.5, 8)))
 
 
 @pytest.mark.parametrize('name', ['pbrt_fbm', 'pbrt_wrinkled', 'pbrt_windy', 'pbrt_marble'])
@@ -198,6 +244,34 @@ def test_checkerboard_zero_differentials_are_point_samples(rng):
     for aamode in ('none', 'box', 'triangle'):
         tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode})
         np.testing.assert_allclose(A(tex.eval_1(make_si(uv))), np.where(even, 1.0, 0.0))
+
+
+def test_checkerboard_box_with_two_edges_in_the_footprint(rng):
+    """Box half-widths 0.5–1 (up to two cell edges inside the footprint, the closed form's
+    general case) along s, t point-sampled at a cell centre: tex2's weight is (1 - E[c(s)])/2
+    with E the exact mean of the square wave, (F(s + r) - F(s - r)) / 2r, F(x) = 1 - |x mod 2
+    - 1| its integral. Float32 closed form with r ≥ 1/2: 1e-5."""
+    n = 400
+    s = f32(rng.uniform(-6, 6, n))
+    r = f32(rng.uniform(0.5, 1.0, n))
+    F = lambda x: 1 - np.abs(np.mod(x, 2) - 1)
+    want = (1 - (F(s + r) - F(s - r)) / (2 * r)) / 2
+    tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'box', 'tex1': 0.0, 'tex2': 1.0})
+    uv = np.stack([s, np.full(n, 0.5)], 1)
+    got = A(tex.eval_1(make_si(uv, np.stack([r, np.zeros(n)], 1), np.zeros((n, 2)))))
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_checkerboard_non_finite_coordinates_and_widths_count_as_zero():
+    """Non-finite coordinates and footprint widths are replaced by 0 before filtering (NaN
+    would otherwise reach the weight): a NaN or infinite s or t lies in the even cell at 0, a
+    NaN width is a point sample. Values: tex1 = 1 there, for every AA mode."""
+    nan, inf = float('nan'), float('inf')
+    uv = np.array([[nan, 0.5], [0.5, inf], [-inf, nan], [0.5, 0.5]])
+    d = np.array([[0, 0], [0, 0], [0, 0], [nan, nan]])
+    for aamode in ('none', 'box', 'triangle'):
+        tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode})
+        np.testing.assert_array_equal(A(tex.eval_1(make_si(uv, d, d))), 1.0)
 
 
 def test_checkerboard_nested_only_where_needed(rng):

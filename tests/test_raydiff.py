@@ -116,12 +116,29 @@ def test_tangent_plane_offsets_and_least_squares(rng):
     np.testing.assert_allclose(duv[:, :1] * dp_du + duv[:, 1:] * dp_dv, dpdx, atol=1e-4)
 
 
+def test_offsets_of_rays_along_the_normal_from_either_side():
+    """Offset rays exactly along ±n (n·d = ±1, head-on from the front or from behind): valid,
+    and the offset is the in-plane displacement of the offset ray's origin, exactly."""
+    p, n = mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1)
+    for z, d in ((1.0, -1.0), (-1.0, 1.0)):
+        o_x, o_y = mi.Point3f(0.25, 0, z), mi.Point3f(0, -0.5, z)
+        dv = mi.Vector3f(0, 0, d)
+        dpdx, dpdy, ok = raydiff.tangent_plane_offsets(p, n, o_x, dv, o_y, dv, mi.Bool(True))
+        assert A(ok).all()
+        np.testing.assert_array_equal(A(dpdx).ravel(), [0.25, 0, 0])
+        np.testing.assert_array_equal(A(dpdy).ravel(), [0, -0.5, 0])
+
+
 def test_degenerate_cases_give_zero_not_nan():
     p, n = mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1)
     o = mi.Point3f(0, 0, 1)
     parallel = mi.Vector3f(1, 0, 0)                    # offset ray parallel to the plane
     dpdx, dpdy, ok = raydiff.tangent_plane_offsets(p, n, o, parallel, o, parallel, mi.Bool(True))
-    assert not A(ok).any() and np.all(A(dpdx) == 0)
+    assert not A(ok).any() and np.all(A(dpdx) == 0) and np.all(A(dpdy) == 0)
+    # a uv parametrisation whose normal-equation determinant rounds to 0 in float32 (not
+    # exactly rank 1): no partials, rather than garbage from a huge or unit inverse
+    duv_dx, duv_dy = raydiff.uv_partials(V([1, 1e-4, 0]), V([1, 0, 0]), V([0, 1, 0]), V([0, 1, 0]))
+    assert np.all(A(duv_dx) == 0) and np.all(A(duv_dy) == 0)
     duv_dx, duv_dy = raydiff.uv_partials(V([0, 0, 0]), V([0, 0, 0]), V([1, 0, 0]), V([0, 1, 0]))
     assert np.all(A(duv_dx) == 0) and np.all(A(duv_dy) == 0)
     huge = raydiff.uv_partials(V([1e-20, 0, 0]), V([0, 1e-20, 0]), V([1, 0, 0]), V([0, 1, 0]))
@@ -139,7 +156,7 @@ def test_spp_scale():
 # ------------------------------------------------------------------------------------ camera approx.
 def _true_and_approx_footprints(fov, w, h, scale, rng, n=400):
     """At points a camera ray hits directly (a plane through the hit with a random normal facing
-    the camera, |cos| ≥ 0.3, at distance 1–10): the true footprint — Mitsuba's own one-pixel
+    the camera, |cos| ≥ 0.3, at distance 0.1–10): the true footprint — Mitsuba's own one-pixel
     ray differential of that camera ray, intersected with the plane in numpy — and the camera
     approximation's (``CameraFootprint.dp_dxy``)."""
     T = mi.ScalarTransform4f
@@ -150,7 +167,7 @@ def _true_and_approx_footprints(fov, w, h, scale, rng, n=400):
     ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
                                             mi.Point2f(0.5, 0.5))
     o, d, ox, dx, oy, dy = (A(v) for v in (ray.o, ray.d, ray.o_x, ray.d_x, ray.o_y, ray.d_y))
-    p = o + rng.uniform(1, 10, n)[:, None] * d
+    p = o + np.exp(rng.uniform(np.log(0.1), np.log(10), n))[:, None] * d
     nrm = normalize(rng.normal(size=(n, 3)))
     nrm = np.where(((nrm * d).sum(1) > 0)[:, None], -nrm, nrm)
     keep = (nrm * -d).sum(1) >= 0.3
@@ -185,6 +202,19 @@ def test_camera_approximation_matches_true_footprint_at_visible_points(rng):
     assert ratio.min() > 0.85 and ratio.max() < 1.10, (ratio.min(), ratio.max())
     for v in (ax, ay):
         assert np.all(np.abs((v * nrm).sum(1)) <= 1e-5 * np.linalg.norm(v, axis=1))
+
+
+def test_camera_approximation_is_zero_on_inactive_lanes(rng):
+    T = mi.ScalarTransform4f
+    sensor = mi.load_dict({'type': 'perspective', 'fov': 30,
+                           'to_world': T().look_at([1, 2, 3], [0, 0, 0], [0, 1, 0]),
+                           'film': {'type': 'hdrfilm', 'width': 8, 'height': 8}})
+    p = rng.normal(size=(10, 3))
+    active = np.arange(10) % 2 == 0
+    ax, ay = raydiff.CameraFootprint(sensor).dp_dxy(mi.Point3f(*p.T), mi.Normal3f(0, 1, 0), 1.0,
+                                                    mi.Bool(active))
+    for v in (A(ax), A(ay)):
+        assert np.all(v[~active] == 0) and np.all(np.abs(v[active]).sum(1) > 0)
 
 
 def test_camera_approximation_scales_with_spp_factor(rng):

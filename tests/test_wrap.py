@@ -12,7 +12,7 @@ import pytest
 
 import reference_mipmap as ref
 from conftest import A, make_si
-from mitsuba_pbrt_tex.wrap import WRAP_MODES, wrap_2d
+from mitsuba_pbrt_tex.wrap import WRAP_MODES, wrap_1d, wrap_2d
 
 
 def _ref_wrap_2d(x, y, w, h, mode):
@@ -125,3 +125,39 @@ def test_octahedral_ewa_matches_pbrt_literal(rng):
                               'octahedralsphere')
     assert ambiguous.mean() < 0.25
     np.testing.assert_allclose(got[~ambiguous], want[~ambiguous], atol=2e-5)
+
+
+@pytest.mark.parametrize('mode', ['repeat', 'mirror'])
+def test_modulo_wraps_are_exact_over_the_whole_coordinate_range(mode):
+    """Far from the image (texel coordinates up to the ±2^22 clamp), ``x·(1/n)`` rounds, and
+    the floor can miss the quotient by one: the result must still be numpy's exact modulo,
+    with the reciprocal computed inside or passed in (float32, as the filters pass it). Sizes
+    include ones whose float32 reciprocal is below 1/n (where multiples of n need the
+    correction), and multiples of n and their neighbours: the 100 nearest each limit and 20000
+    drawn between (about a fifth of the multiples need the correction)."""
+    rng = np.random.default_rng(3)
+    for n in (3, 10, 11, 37, 100, 333, 1000, 1023, 4097, 12345):
+        k = np.arange(-(2 ** 22) // n, (2 ** 22) // n + 1)
+        k = np.unique(np.concatenate([k[:100], k[-100:], rng.choice(k, min(len(k), 20000))]))
+        x = np.concatenate([k * n, k * n - 1, k * n + 1])
+        x = x[np.abs(x) <= 2 ** 22]
+        if mode == 'repeat':
+            want = np.mod(x, n)
+        else:
+            m = np.mod(x, 2 * n)
+            want = np.where(m >= n, 2 * n - 1 - m, m)
+        for inv in (None, mi.Float(np.float32(1.0 / n))):
+            got = A(wrap_1d(mi.Float(x.astype(np.float64)), n, mode, inv))
+            np.testing.assert_array_equal(got, want, err_msg=f'n={n}')
+
+
+@pytest.mark.parametrize('wrap', ['repeat', 'clamp', 'mirror', 'octahedralsphere'])
+def test_non_finite_coordinates_read_texel_zero(wrap, rng):
+    """NaN and ±inf texture coordinates are replaced by texel coordinate 0 (documented in
+    wrap.py): a point lookup then reads column 0 (or row 0) of the image, exactly."""
+    img = rng.random((5, 7, 3))
+    tex = imagemap(img, filter='point', wrap=wrap)
+    nan, inf = float('nan'), float('inf')
+    got = A(tex.eval(make_si([[nan, 0.5], [inf, 0.3], [0.5, -inf], [-inf, nan]])))
+    want = np.stack([img[2, 0], img[1, 0], img[0, 3], img[0, 0]])
+    np.testing.assert_array_equal(got.astype(np.float32), want.astype(np.float32))
