@@ -184,6 +184,13 @@ class RayDiff:
                        dr.fma(mi.Point3f(dr.detach(ray.o_y)) - o, scale, o),
                        dr.fma(mi.Vector3f(dr.detach(ray.d_y)) - d, scale, d), mi.Bool(True))
 
+    def fields(self) -> tuple:
+        return self.o_x, self.d_x, self.o_y, self.d_y, self.valid
+
+    def dropped(self) -> 'RayDiff':
+        """The same rays, no longer valid (after a non-specular bounce)."""
+        return RayDiff(self.o_x, self.d_x, self.o_y, self.d_y, mi.Bool(False))
+
     def footprint(self, p, n, active):
         """(dp/dx, dp/dy, ok) on the tangent plane at p (see :func:`tangent_plane_offsets`)."""
         return tangent_plane_offsets(p, n, self.o_x, self.d_x, self.o_y, self.d_y,

@@ -422,7 +422,15 @@ class Plugin:
 
             # ---- differentials: propagate through ideal specular lobes ---------------------
             if dr.hint(want, mode='scalar'):
-                diff = diff.after_specular(si, bsdf_sample, wo_world, ray_next.o, dpdx, dpdy)
+                # as a symbolic conditional: packets without a specular bounce skip the math
+                specular = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta) & \
+                    si.is_valid() & diff.valid
+                fields = dr.if_stmt(
+                    args=(specular,), cond=specular,
+                    true_fn=lambda m: diff.after_specular(
+                        si, bsdf_sample, wo_world, ray_next.o, dpdx, dpdy).fields(),
+                    false_fn=lambda m: diff.dropped().fields(), label='pbrt_path: specular')
+                diff = RayDiff(*fields)
 
             η *= bsdf_sample.eta
             β *= bsdf_weight
