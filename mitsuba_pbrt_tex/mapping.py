@@ -259,21 +259,18 @@ _DELTA = ('udelta', 'vdelta')
 _PLANAR_ONLY = ('v1', 'v2')
 
 
-def mapping_2d(p: Params, *, allow_to_uv: bool = True):
+def mapping_2d(p: Params):
     """Build the 2D mapping a plugin's parameters describe (``mapping`` + its parameters)."""
     kind = p.enum('mapping', 'uv', MAPPINGS_2D)
     used = {'uv': _UV_ONLY + _DELTA, 'planar': _PLANAR_ONLY + _DELTA + ('to_world',),
             'spherical': ('to_world',), 'cylindrical': ('to_world',)}[kind]
     for name in _UV_ONLY + _DELTA + _PLANAR_ONLY + ('to_world',):
-        if name == 'to_uv' and not allow_to_uv:
-            continue
         if p.has(name) and name not in used:
             raise p.error(name, f'does not apply to mapping "{kind}"; parameters of "{kind}": '
                                 f'{", ".join(used) if used else "(none)"}')
     if kind == 'uv':
-        to_uv = p.transform('to_uv') if allow_to_uv else None
         return UVMapping(p.float('uscale', 1.0), p.float('vscale', 1.0),
-                         p.float('udelta', 0.0), p.float('vdelta', 0.0), to_uv)
+                         p.float('udelta', 0.0), p.float('vdelta', 0.0), p.transform('to_uv'))
     to_world = p.transform('to_world', invertible=True)
     if kind == 'spherical':
         return SphericalMapping(to_world)
