@@ -62,7 +62,12 @@ def texel_weights(texels: np.ndarray, scale: float, invert: bool) -> np.ndarray:
 
 
 def _wrap_np(x, y, w, h, mode):
-    """numpy twin of :func:`mitsuba_pbrt_tex.wrap.wrap_2d` (integer indices → index, valid)."""
+    """numpy twin of :func:`mitsuba_pbrt_tex.wrap.wrap_2d` (integer indices → index, valid).
+
+    A twin, not a call: the tables are built the first time an emitter asks, which may be while
+    Mitsuba traces a kernel, where no new Dr.Jit computation can be evaluated (reading the
+    already evaluated texels is allowed). ``tests/test_dropin.py`` checks the resulting density
+    against the lookups for every wrap mode."""
     valid = np.ones(np.broadcast(x, y).shape, bool)
     x, y = np.broadcast_to(x, valid.shape).copy(), np.broadcast_to(y, valid.shape).copy()
     if mode == 'repeat':

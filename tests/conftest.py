@@ -60,3 +60,32 @@ def A(x):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+def adam_steps(load_scene, key, steps, frozen, spp=4):
+    """Mitsuba's frozen-optimisation pattern (its own test_freeze.py): a function renders and
+    back-propagates, ``params.update(opt)`` and ``opt.step()`` run outside it; with ``frozen``
+    the function goes through ``dr.freeze``. Returns ([(loss, gradient of ``key``)] per step,
+    the number of recordings or None)."""
+    scene = load_scene()
+
+    def optimize(scene, seed):
+        params = mi.traverse(scene)
+        params.keep(key)
+        image = mi.render(scene, params, spp=spp, seed=seed)
+        loss = dr.mean(dr.square(image - 0.25), axis=None)
+        dr.backward(loss)
+        return loss
+
+    fn = dr.freeze(optimize) if frozen else optimize
+    params = mi.traverse(scene)
+    params.keep(key)
+    opt = mi.ad.Adam(lr=0.05)
+    opt[key] = params[key]
+    history = []
+    for step in range(steps):
+        params.update(opt)
+        loss = fn(scene, mi.UInt32(step))
+        history.append((float(np.array(loss).ravel()[0]), np.array(dr.grad(opt[key]))))
+        opt.step()
+    return history, (fn.n_recordings if frozen else None)

@@ -12,6 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from conftest import adam_steps
 
 T = mi.ScalarTransform4f
 RES = 16
@@ -186,29 +187,9 @@ def test_frozen_optimisation_steps_equal_unfrozen_ones(filt):
     frozen and not: the losses and texel gradients are equal (the replay runs the recorded
     kernels on the new inputs: float32 rounding, 1e-5), and calls were replayed, not all
     recorded (Dr.Jit records such a step up to 3 times here, as for bitmap + prb)."""
-    def run(frozen, steps=6):
-        scene = textured_scene('pbrt_path', filt, np.random.default_rng(3), size=16)
-
-        def optimize(scene, seed):
-            params = mi.traverse(scene)
-            params.keep(DATA_KEY)
-            image = mi.render(scene, params, spp=4, seed=seed)
-            loss = dr.mean(dr.square(image - 0.25), axis=None)
-            dr.backward(loss)
-            return loss
-
-        fn = dr.freeze(optimize) if frozen else optimize
-        params = mi.traverse(scene)
-        params.keep(DATA_KEY)
-        opt = mi.ad.Adam(lr=0.05)
-        opt[DATA_KEY] = params[DATA_KEY]
-        history = []
-        for step in range(steps):
-            params.update(opt)
-            loss = fn(scene, mi.UInt32(step))
-            history.append((scalar(loss), np.array(dr.grad(opt[DATA_KEY]))))
-            opt.step()
-        return history, (fn.n_recordings if frozen else None)
+    def run(frozen):
+        return adam_steps(lambda: textured_scene('pbrt_path', filt, np.random.default_rng(3),
+                                                 size=16), DATA_KEY, 6, frozen)
 
     plain, _ = run(False)
     frozen, recordings = run(True)

@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import A
+from conftest import A, adam_steps
 
 T = mi.ScalarTransform4f
 RES = (24, 16)
@@ -230,31 +230,10 @@ def test_frozen_steps_with_box_equal_unfrozen(footprint, rng):
     key = 'plane.bsdf.reflectance.data'
     texels = rng.random((8, 8, 3)).astype(np.float32)
 
-    def run(frozen, steps=4):
+    def run(frozen):
         d = scene_dict({'type': 'pbrt_imagemap', 'filter': 'box', 'data': mi.TensorXf(texels),
                         'uscale': 3.0, 'vscale': 3.0}, footprint=footprint, second_bsdf=False)
-        scene = mi.load_dict(d)
-
-        def step(scene, seed):
-            params = mi.traverse(scene)
-            params.keep(key)
-            image = mi.render(scene, params, spp=2, seed=seed)
-            loss = dr.mean(dr.square(image - 0.25), axis=None)
-            dr.backward(loss)
-            return loss
-
-        fn = dr.freeze(step) if frozen else step
-        params = mi.traverse(scene)
-        params.keep(key)
-        opt = mi.ad.Adam(lr=0.05)
-        opt[key] = params[key]
-        out = []
-        for k in range(steps):
-            params.update(opt)
-            loss = fn(scene, mi.UInt32(k))
-            out.append((float(np.array(loss).ravel()[0]), np.array(dr.grad(opt[key]))))
-            opt.step()
-        return out, (fn.n_recordings if frozen else None)
+        return adam_steps(lambda: mi.load_dict(d), key, 4, frozen, spp=2)
 
     plain, _ = run(False)
     frozen, recordings = run(True)
