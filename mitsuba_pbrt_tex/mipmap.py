@@ -43,6 +43,8 @@ Level selection
 ---------------
 A filter width ``w`` (in [0,1] texture units) selects level ``log2(w · max(W, H))``: level 0 when
 the footprint is one base texel. For power-of-two images this is pbrt's ``L - 1 + log2(w)``.
+Point and bilinear lookups need only its integer part, which is the float's exponent (exact);
+trilinear and EWA blend levels and evaluate the logarithm (:func:`log2_positive`).
 
 Filters here (EWA lives in :mod:`mitsuba_pbrt_tex.ewa`):
 
@@ -134,7 +136,7 @@ def _downsample(src: mi.Float, w: int, h: int, c: int, w2: int, h2: int,
 
 def build_levels(texels: mi.Float, width: int, height: int, channels: int):
     """Every level of ``texels`` (flat (height, width, channels), level 0) as one flat buffer,
-    RGBA-padded for RGB, plus the level sizes and texel offsets.
+    RGBA-padded for RGB, plus the level sizes.
 
     Memory (RGB): the buffer is 16/9 of the tensor; besides the tensor, building it needs only
     the unpadded levels from 2 on (1/12 of it): each level is padded and sanitized
@@ -144,9 +146,6 @@ def build_levels(texels: mi.Float, width: int, height: int, channels: int):
     image at the peak (``bench memory``), against 4.2× when the levels were built from a padded
     level 0 and kept until the copy."""
     sizes = level_sizes(width, height)
-    offsets = [0]
-    for w, h in sizes[:-1]:
-        offsets.append(offsets[-1] + w * h)
 
     def level1():
         (w2, h2) = sizes[1]
@@ -167,7 +166,7 @@ def build_levels(texels: mi.Float, width: int, height: int, channels: int):
             dr.sync_thread()
             dr.flush_malloc_cache()
     pad = pad_rgb if channels == 3 else (lambda x: x)
-    return dr.concat([sanitized(pad(part)) for part in parts]), sizes, offsets
+    return dr.concat([sanitized(pad(part)) for part in parts]), sizes
 
 
 def sanitized(x):
@@ -188,19 +187,21 @@ def pad_rgb(flat: mi.Float) -> mi.Float:
 class Pyramid:
     """The levels of one image in one flat float32 buffer (see the module docstring): level 0
     first, ``stride`` floats per texel (4 for RGB, 1 for 1-channel images), level ``l`` of size
-    ``sizes[l]`` starting at texel ``off[l]``. Made by :func:`build_pyramid`, never changed.
+    ``sizes[l]`` starting at texel ``offsets[l]``. Made by :func:`build_pyramid`, never changed.
 
-    A Dr.Jit struct: ``buffer`` and ``off`` are what Dr.Jit traverses (frozen functions); the
-    rest is static shape information."""
+    A Dr.Jit struct: ``buffer`` is what Dr.Jit traverses (frozen functions); the rest is static
+    shape information (kernels use the sizes and offsets as literals, like the image size)."""
 
-    DRJIT_STRUCT = {'buffer': object, 'off': object}
+    DRJIT_STRUCT = {'buffer': object}
 
-    def __init__(self, buffer=None, off=None, width: int = 1, height: int = 1,
-                 channels: int = 1, sizes=None):
+    def __init__(self, buffer=None, width: int = 1, height: int = 1, channels: int = 1,
+                 sizes=None):
         self.buffer = buffer
-        self.off = off
         self.width, self.height, self.channels = width, height, channels
         self.sizes = list(sizes) if sizes is not None else [(width, height)]
+        self.offsets = [0]
+        for w, h in self.sizes[:-1]:
+            self.offsets.append(self.offsets[-1] + w * h)
 
     @property
     def stride(self) -> int:
@@ -224,17 +225,12 @@ def build_pyramid(tensor: mi.TensorXf, levels: bool = True) -> Pyramid:
         raise ValueError(f'expected an (H, W, 1|3) tensor, got shape {tuple(tensor.shape)}')
     height, width, channels = (int(s) for s in tensor.shape)
     if levels:
-        buffer, sizes, offsets = build_levels(tensor.array, width, height, channels)
+        buffer, sizes = build_levels(tensor.array, width, height, channels)
     else:
         level0 = pad_rgb(tensor.array) if channels == 3 else tensor.array
-        buffer, sizes, offsets = sanitized(level0), [(width, height)], [0]
-    # from literals, not a host array: a frozen function can record it
-    index = dr.arange(mi.UInt32, len(offsets))
-    off = mi.UInt32(0)
-    for level, offset in enumerate(offsets[1:], start=1):
-        off = dr.select(index == level, offset, off)
-    dr.eval(buffer, off)
-    return Pyramid(buffer, off, width, height, channels, sizes)
+        buffer, sizes = sanitized(level0), [(width, height)]
+    dr.eval(buffer)
+    return Pyramid(buffer, width, height, channels, sizes)
 
 
 # ------------------------------------------------------------------------------------ lookups
@@ -296,6 +292,14 @@ class MIPMap:
         if self.wrap == 'octahedralsphere':            # couples the axes: wrap per tap
             texels = [self.fetch(view, x0 + bx, y0 + by, active)
                       for by in (0, 1) for bx in (0, 1)]
+        elif self.wrap == 'repeat' and view.pow2:
+            # power-of-two sides (every level of a power-of-two image): the modulo is a bit
+            # mask — exact, and at a per-lane level a few integer operations instead of a float
+            # modulo by a per-lane size
+            ix0, iy0 = mi.Int32(x0), mi.Int32(y0)
+            xs = (ix0 & view.mask[0], (ix0 + 1) & view.mask[0])
+            ys = (iy0 & view.mask[1], (iy0 + 1) & view.mask[1])
+            texels = [view.gather(ys[by], xs[bx], active) for by in (0, 1) for bx in (0, 1)]
         else:                                           # wrap each axis once per tap column/row
             xs = adjacent_wrapped(x0, w, self.wrap, view.inv_size[0])
             ys = adjacent_wrapped(y0, h, self.wrap, view.inv_size[1])
@@ -323,7 +327,16 @@ class MIPMap:
     # -------------------------------------------------------------------- level selection
     def level_of(self, width):
         """Continuous level for a filter width in texture units (pbrt: L-1 + log2 width)."""
-        return log2_positive(dr.maximum(width, 1e-8) * float(max(self.width, self.height)))
+        return log2_positive(self._texels_across(width))
+
+    def whole_level_of(self, width):
+        """``floor(level_of(width))`` as an Int32, exactly: the float's exponent bits (what
+        point and bilinear lookups select; no polynomial)."""
+        bits = dr.reinterpret_array(mi.UInt32, self._texels_across(width))
+        return mi.Int32(bits >> 23) - 127
+
+    def _texels_across(self, width):
+        return dr.maximum(width, 1e-8) * float(max(self.width, self.height))
 
     def only_where(self, mask, fn, *inputs):
         """``fn(mask)`` where ``mask`` holds and 0 elsewhere, as a symbolic conditional: a
@@ -361,9 +374,9 @@ class MIPMap:
         if not self.has_pyramid or len(self.sizes) == 1:
             return lookup(0, st, active)
         last = len(self.sizes) - 1
-        level = self.level_of(width)
+        level = self.whole_level_of(width)
         top = self._top_lanes(level, last)
-        ilevel = mi.UInt32(dr.clip(dr.floor(level), 0, last))
+        ilevel = mi.UInt32(dr.clip(level, 0, last))
         value = lookup(ilevel, st, active & ~top)
         return self._with_top(top, active, value)
 
@@ -400,13 +413,22 @@ class LevelView:
             self.off, self.iw = 0, mip.width
         else:
             # level sizes halve with floor, never below 1: max(1, floor(n / 2^level)), the
-            # power of two built from its exponent bits (exact); only the offset is looked up
-            inv_scale = dr.reinterpret_array(mi.Float, (127 - mi.UInt32(level)) << 23)
+            # power of two built from its exponent bits (exact)
+            level = mi.UInt32(level)
+            inv_scale = dr.reinterpret_array(mi.Float, (127 - level) << 23)
             self.size = (dr.maximum(dr.floor(mip.width * inv_scale), 1),
                          dr.maximum(dr.floor(mip.height * inv_scale), 1))
-            self.off = dr.gather(mi.UInt32, pyr.off, level)
+            # the level's first texel: a select per level from literals (cheaper in a kernel
+            # than a gather from a table)
+            self.off = mi.UInt32(0)
+            for lvl, offset in enumerate(pyr.offsets[1:], start=1):
+                self.off = dr.select(level >= lvl, offset, self.off)
             self.iw = mi.UInt32(self.size[0])
             self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
+        # every level of a power-of-two image has power-of-two sides: x mod w = x & (w - 1)
+        self.pow2 = not (mip.width & (mip.width - 1) or mip.height & (mip.height - 1))
+        if self.pow2:
+            self.mask = (mi.Int32(self.size[0]) - 1, mi.Int32(self.size[1]) - 1)
 
     def gather(self, iy, ix, active):
         """Texel at wrapped integer (ix, iy)."""

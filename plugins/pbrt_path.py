@@ -57,7 +57,10 @@ where differentials need it:
 
 * before ``si.bsdf()``, each hit gets ``si.duv_dx``/``si.duv_dy`` (``prb`` leaves them 0);
 * after BSDF sampling, the ray differential (:class:`~mitsuba_pbrt_tex.raydiff.RayDiff`) is
-  propagated through ideal specular lobes or dropped;
+  propagated through ideal specular lobes or dropped — in scenes where some BSDF has such a
+  lobe (read from the BSDFs' flags at each render); elsewhere only camera hits use it;
+* the previous hit is kept as an ``Interaction3f`` (``prb``: a whole ``SurfaceInteraction3f``,
+  of which the next bounce reads the same fields: a smaller loop state to trace);
 * the camera ray's differential is scaled by ``spp_scale`` (``prb`` discards it), the sensor is
   remembered in ``sample_rays`` for the camera approximation, and the scene's textures are asked
   (``prepare_differentials``) at each render;
@@ -153,15 +156,23 @@ class Plugin:
 
     # ------------------------------------------------------------------ what the scene needs
     def needs_differentials(self, scene) -> bool:
-        """Does any texture of the scene use differentials? (Also prepares them.)
+        """Does any texture of the scene use differentials? (Also prepares them.)"""
+        return self.scene_needs(scene)[0]
+
+    def scene_needs(self, scene) -> tuple:
+        """(does any texture use differentials — also prepares them —, does any BSDF have an
+        ideal specular lobe to propagate a ray differential through).
 
         Asked at every render, not cached: Mitsuba objects admit no weak references, an id()
-        may be reused by the next scene, and the traversal takes ~0.2 ms."""
+        may be reused by the next scene, and the traversal takes ~0.05 ms."""
         if not self.texture_differentials:
-            return False
-        nodes = mi.traverse(scene).hierarchy.keys()
+            return False, False
+        nodes = list(mi.traverse(scene).hierarchy.keys())
         textures = [n for n in nodes if isinstance(n, mi.Texture)]
-        return any([uses_differentials(t) for t in textures])      # prepares every one
+        want = any([uses_differentials(t) for t in textures])      # prepares every one
+        delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
+        specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
+        return want, specular
 
     def footprint(self, sensor) -> raydiff.CameraFootprint:
         """The camera approximation's minimum differentials, found anew at every render (the
@@ -240,14 +251,15 @@ class Plugin:
 
     def prepare_trace(self, scene, sampler, sensor):
         """(does any texture use differentials, the camera differential's scale, the camera
-        approximation) — computed once per ``sample()``, outside any symbolic loop."""
-        want = self.needs_differentials(scene)
+        approximation, does a BSDF have an ideal specular lobe) — computed once per
+        ``sample()``, outside any symbolic loop."""
+        want, specular = self.scene_needs(scene)
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
         # (but a frozen function cannot record the host → device copy; spp is part of its key)
         scale = raydiff.spp_scale(spp, self.spp_mode)
         scale = mi.Float(scale) if dr.flag(dr.JitFlag.FreezingScope) else dr.opaque(mi.Float, scale)
-        return want, scale, (self.footprint(sensor) if want else None)
+        return want, scale, (self.footprint(sensor) if want else None), specular
 
     # ------------------------------------------------------------------ silhouette samples
     def _film_ray(self, sensor, pixel_pos, offset, active):
@@ -298,7 +310,7 @@ class Plugin:
         mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
-        want, scale, camera = prep
+        want, scale, camera, specular_scene = prep
 
         # ---- differentials: the camera ray's, scaled for the sample count --------------------
         if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
@@ -318,7 +330,7 @@ class Plugin:
         pi = scene.ray_intersect_preliminary(ray, coherent=True, reorder=False, active=active)
         ray_prev = mi.Ray3f(ray)
         pi_prev = dr.zeros(mi.PreliminaryIntersection3f)
-        si_prev = dr.zeros(mi.SurfaceInteraction3f)
+        si_prev = dr.zeros(mi.Interaction3f)
         bsdf_pdf_prev = mi.Float(1.0)
         bsdf_delta_prev = mi.Bool(True)
 
@@ -337,7 +349,7 @@ class Plugin:
                 if (not primal) & mi.Bool(depth >= 1):
                     si_prev_diff = pi_prev.compute_surface_interaction(
                         ray_prev, ray_flags=mi.RayFlags.Minimal)
-                    si_prev = dr.replace_grad(si_prev, si_prev_diff)
+                    si_prev = dr.replace_grad(si_prev, _interaction(si_prev_diff))
                     si_detached = dr.detach(si)
                     wi_global = dr.normalize(si_prev.p - si_detached.p)
                     si.wi = dr.replace_grad(si.wi, si_detached.to_local(wi_global))
@@ -350,6 +362,8 @@ class Plugin:
                 # each source as a symbolic conditional: a packet of lanes none of which needs
                 # it skips it (camera rays have a differential; diffuse bounces do not)
                 use = valid & diff.valid
+                if dr.hint(not specular_scene, mode='scalar'):
+                    use &= depth == 0       # no specular lobe: only camera rays have one
                 dpdx, dpdy, ok = dr.if_stmt(
                     args=(p_hit, n_hit, use), cond=use, true_fn=diff.footprint,
                     false_fn=lambda p, n, m: (mi.Vector3f(0), mi.Vector3f(0), mi.Bool(False)),
@@ -421,7 +435,8 @@ class Plugin:
             ray_next = si.spawn_ray(wo_world)
 
             # ---- differentials: propagate through ideal specular lobes ---------------------
-            if dr.hint(want, mode='scalar'):
+            # (only in scenes that have one: elsewhere the differential is dropped here anyway)
+            if dr.hint(want and specular_scene, mode='scalar'):
                 # as a symbolic conditional: packets without a specular bounce skip the math
                 specular = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta) & \
                     si.is_valid() & diff.valid
@@ -434,7 +449,7 @@ class Plugin:
 
             η *= bsdf_sample.eta
             β *= bsdf_weight
-            si_prev = dr.detach(si, True)
+            si_prev = _interaction(dr.detach(si, True))
             bsdf_pdf_prev = bsdf_sample.pdf
             bsdf_delta_prev = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta)
 
@@ -492,3 +507,9 @@ class Plugin:
             v = first_duv_dx if a == 'duv_dx' else first_duv_dy
             aovs += [v.x, v.y]
         return (L if primal else δL, depth != 0, aovs, L)
+
+
+def _interaction(si):
+    """What the next bounce reads of a hit (the reference point of its emitter MIS weight):
+    an ``Interaction3f`` — fewer loop variables to trace than a whole SurfaceInteraction."""
+    return mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)

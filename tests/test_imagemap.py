@@ -126,7 +126,7 @@ def test_pyramid_levels_match_reference(shape, channels, rng):
     want = ref.pyramid(img)
     assert pyr.sizes == [(lv.shape[1], lv.shape[0]) for lv in want] == level_sizes(shape[1], shape[0])
     buffer = np.array(pyr.buffer)                            # all levels, level 0 first
-    offsets = np.array(pyr.off)
+    offsets = np.cumsum([0] + [lv.shape[0] * lv.shape[1] for lv in want])  # level after level
     stride = pyr.stride                                      # RGB levels are stored RGBA-padded
     for k, lv in enumerate(want):
         h, w = lv.shape[:2]

@@ -23,6 +23,8 @@ CASES = (
     ('specular, bitmap asking for differentials', 'specular.xml',
      {'texture': 'tex/image_bitmap_footprint.xml'}),
     # with filtering: the textures' own cost changes with the footprint too
+    ('grazing, image (bilinear)', 'grazing.xml',
+     {'texture': 'tex/image_pbrt.xml', 'filter': 'bilinear', 'tiles': '125'}),
     ('grazing, image (trilinear)', 'grazing.xml',
      {'texture': 'tex/image_pbrt.xml', 'filter': 'trilinear', 'tiles': '125'}),
     ('grazing, procedural checkerboard', 'grazing.xml',
@@ -72,6 +74,13 @@ def main(argv=None) -> int:
     ap.add_argument('--spp', type=int, default=16)
     ap.add_argument('--repeats', type=int, default=5)
     ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--res', default='320x180', help='image size WxH (default 320x180)')
     args = ap.parse_args(argv)
-    run(args.spp, repeats=args.repeats, variant=args.variant)
+    try:
+        res = tuple(int(v) for v in args.res.lower().split('x'))
+        if len(res) != 2 or min(res) < 1:
+            raise ValueError
+    except ValueError:
+        ap.error(f'--res: expected WxH with positive integers, got {args.res!r}')
+    run(args.spp, res=res, repeats=args.repeats, variant=args.variant)
     return 0

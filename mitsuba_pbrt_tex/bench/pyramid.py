@@ -76,7 +76,7 @@ def area_box_pyramid(img):
     from ..mipmap import build_pyramid
     pyr = build_pyramid(mi.TensorXf(img.astype(np.float32)))
     upper = np.array(pyr.buffer, dtype=np.float64)
-    off = np.array(pyr.off)
+    off = pyr.offsets
     c, stride = img.shape[2], pyr.stride
     levels = [img.astype(np.float64)]
     for k, (w, h) in enumerate(pyr.sizes[1:], start=1):
