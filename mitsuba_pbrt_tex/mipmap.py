@@ -412,23 +412,24 @@ class LevelView:
             self.inv_size = (1.0 / mip.width, 1.0 / mip.height)
             self.off, self.iw = 0, mip.width
         else:
-            # level sizes halve with floor, never below 1: max(1, floor(n / 2^level)), the
-            # power of two built from its exponent bits (exact)
+            # level sizes halve with floor, never below 1: max(1, n >> level)
             level = mi.UInt32(level)
-            inv_scale = dr.reinterpret_array(mi.Float, (127 - level) << 23)
-            self.size = (dr.maximum(dr.floor(mip.width * inv_scale), 1),
-                         dr.maximum(dr.floor(mip.height * inv_scale), 1))
+            iw = dr.maximum(mi.UInt32(mip.width) >> level, 1)
+            ih = dr.maximum(mi.UInt32(mip.height) >> level, 1)
+            self.size = (mi.Float(iw), mi.Float(ih))
             # the level's first texel: a select per level from literals (cheaper in a kernel
             # than a gather from a table)
             self.off = mi.UInt32(0)
             for lvl, offset in enumerate(pyr.offsets[1:], start=1):
                 self.off = dr.select(level >= lvl, offset, self.off)
-            self.iw = mi.UInt32(self.size[0])
+            self.iw = iw
             self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
         # every level of a power-of-two image has power-of-two sides: x mod w = x & (w - 1)
         self.pow2 = not (mip.width & (mip.width - 1) or mip.height & (mip.height - 1))
-        if self.pow2:
-            self.mask = (mi.Int32(self.size[0]) - 1, mi.Int32(self.size[1]) - 1)
+        if self.pow2 and self.static:
+            self.mask = (mip.width - 1, mip.height - 1)
+        elif self.pow2:
+            self.mask = (mi.Int32(iw - 1), mi.Int32(ih - 1))
 
     def gather(self, iy, ix, active):
         """Texel at wrapped integer (ix, iy)."""
