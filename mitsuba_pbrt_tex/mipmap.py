@@ -417,11 +417,16 @@ class LevelView:
             iw = dr.maximum(mi.UInt32(mip.width) >> level, 1)
             ih = dr.maximum(mi.UInt32(mip.height) >> level, 1)
             self.size = (mi.Float(iw), mi.Float(ih))
-            # the level's first texel: a select per level from literals (cheaper in a kernel
-            # than a gather from a table)
-            self.off = mi.UInt32(0)
-            for lvl, offset in enumerate(pyr.offsets[1:], start=1):
-                self.off = dr.select(level >= lvl, offset, self.off)
+            # the level's first texel, from literals (cheaper in a kernel than a gather from a
+            # table): for a square power-of-two image n², the sum of (n/2^k)² over k < level,
+            # (4n² - 4n²/4^level) / 3 exactly; otherwise a select per level
+            a4 = 4 * mip.width * mip.height
+            if mip.width == mip.height and not mip.width & (mip.width - 1) and a4 < 2**32:
+                self.off = (a4 - (mi.UInt32(a4) >> (2 * level))) // 3
+            else:
+                self.off = mi.UInt32(0)
+                for lvl, offset in enumerate(pyr.offsets[1:], start=1):
+                    self.off = dr.select(level >= lvl, offset, self.off)
             self.iw = iw
             self.inv_size = (dr.rcp(self.size[0]), dr.rcp(self.size[1]))
         # every level of a power-of-two image has power-of-two sides: x mod w = x & (w - 1)

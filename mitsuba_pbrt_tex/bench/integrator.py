@@ -3,7 +3,9 @@
 The same scenes and textures rendered by Mitsuba's ``path``, by ``pbrt_path`` with texture
 differentials, and by ``pbrt_path`` with ``texture_differentials=false``, in one process,
 interleaved, median of ``--repeats`` renders after a warm-up (compilation excluded). Prints the
-time ratios to ``path``. Targets: ≤ 1.2× with differentials, ≈ 1.0× without.
+time ratios to ``path``. Targets: ≤ 1.2× with differentials, ≈ 1.0× without. Mitsuba's own
+``prb`` (the path-replay integrator whose stages ``pbrt_path`` follows) is timed too: its ratio
+to ``path`` is the cost of that structure, which ``pbrt_path`` shares.
 
 The first cases isolate the integrator: Mitsuba's ``bitmap`` wrapped in a one-sample
 ``pbrt_supersample`` does the same lookups whatever the footprint, but asks for differentials.
@@ -48,11 +50,12 @@ def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
     integrators = {'path': mi.load_dict({'type': 'path', 'max_depth': 5}),
                    'pbrt_path': mi.load_dict({'type': 'pbrt_path', 'max_depth': 5}),
                    'pbrt_path, differentials off': mi.load_dict(
-                       {'type': 'pbrt_path', 'max_depth': 5, 'texture_differentials': False})}
+                       {'type': 'pbrt_path', 'max_depth': 5, 'texture_differentials': False}),
+                   'prb': mi.load_dict({'type': 'prb', 'max_depth': 5})}
     out(f'integrators: {res[0]}x{res[1]}, {spp} spp, max_depth 5, median of {repeats}, {variant}')
     out('| scene | path (ms) | pbrt_path (ms) | ratio (target ≤ 1.2) | differentials off (ms) '
-        '| ratio (target ≈ 1.0) |')
-    out('|---|---|---|---|---|---|')
+        '| ratio (target ≈ 1.0) | Mitsuba\'s prb: ratio |')
+    out('|---|---|---|---|---|---|---|')
     rows = []
     for name, xml, params in CASES:
         scene = mi.load_file(os.path.join(scenes_dir(), xml), width=str(res[0]),
@@ -63,8 +66,8 @@ def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
         base = times['path']
         on, off = times['pbrt_path'], times['pbrt_path, differentials off']
         out(f'| {name} | {base * 1e3:.1f} | {on * 1e3:.1f} | {on / base:.2f}× | '
-            f'{off * 1e3:.1f} | {off / base:.2f}× |')
-        rows.append(dict(scene=name, path=base, on=on, off=off))
+            f'{off * 1e3:.1f} | {off / base:.2f}× | {times["prb"] / base:.2f}× |')
+        rows.append(dict(scene=name, path=base, on=on, off=off, prb=times['prb']))
     return rows
 
 
