@@ -5,7 +5,7 @@
 | tex1 | float, rgb, texture | 1 | the even cells (floor(s) + floor(t) even) | yes |
 | tex2 | float, rgb, texture | 0 | the odd cells | yes |
 | dimension | integer | 2 | 2 (uses the 2D mapping) or 3 (solid, uses p in texture space) | no |
-| aamode | string | triangle | `none` (point sample), `box` (pbrt-v3 closed form; alias `closedform`) or `triangle` (pbrt-v4) | no |
+| aamode | string | triangle | `none` (point sample), `box` (pbrt-v3 closed form; alias `closedform`), `triangle` (pbrt-v4) or `area` (2D: the exact average over the footprint parallelogram, pixel-centred under `pbrt_path` `footprint="pixel"`) | no |
 | (2D mapping) | | | dimension 2: mapping parameters, see the mapping table | no |
 | (3D mapping) | | | dimension 3: the texture-space transform, see the mapping table | no |
 
@@ -13,12 +13,21 @@ The filter footprint comes from the texture differentials (``pbrt_path``); with 
 (Mitsuba's integrators) every mode is the point sample. Nested textures are evaluated only where
 their weight is non-zero. The closed forms and the fix of pbrt-v3's NaN are described in
 :mod:`mitsuba_pbrt_tex.checker`.
+
+``area`` opts in to pixel footprints like ``pbrt_imagemap``'s ``box`` filter (see
+:mod:`mitsuba_pbrt_tex.pixel`): under ``pbrt_path`` with ``footprint="pixel"`` a camera hit gets
+the average over its pixel's footprint, the same for every sample of the pixel — exact for a
+checkerboard that enters the shading linearly (albedo, emission), while a roughness or bump
+checkerboard would converge to the shading of the averaged texture. Why not ``box``: pbrt-v3's
+``box`` (``closedform``) averages over a square of half-width ``max(|d/dx|, |d/dy|)``, about twice
+the pixel; reusing the name would change every scene that uses it.
 """
 
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.checker import AAMODES, tex2_weight
+from mitsuba_pbrt_tex import pixel
+from mitsuba_pbrt_tex.checker import AAMODES, area_mean, tex2_weight
 from mitsuba_pbrt_tex.mapping import mapping_2d, mapping_3d
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
 
@@ -42,15 +51,27 @@ class Plugin(PbrtTexture):
             self.describe(name, getattr(self, name))
         self.describe('mapping', self.mapping.describe())
 
+    def context(self, si):
+        """``area`` (2D) filters the pixel's footprint at camera hits under ``pbrt_path``
+        ``footprint="pixel"``; the other modes stay sample-centred."""
+        if self.aamode == 'area' and self.dimension == 2:
+            return pixel.context(si)
+        return PbrtTexture.context(self, si)
+
     def weight(self, si):
         """Weight of tex2 at each lookup."""
         tc = self.mapping.map(self.context(si))
+        closed = 'box' if self.aamode == 'area' else self.aamode
         if self.dimension == 2:
-            return tex2_weight((tc.st.x, tc.st.y),
-                               (_width(tc.dsdx, tc.dsdy), _width(tc.dtdx, tc.dtdy)), self.aamode)
+            w = tex2_weight((tc.st.x, tc.st.y),
+                            (_width(tc.dsdx, tc.dsdy), _width(tc.dtdx, tc.dtdy)), closed)
+            if self.aamode == 'area':
+                mean, ok = area_mean((tc.st.x, tc.st.y), (tc.dsdx, tc.dtdx), (tc.dsdy, tc.dtdy))
+                w = dr.select(ok, 0.5 - 0.5 * mean, w)
+            return w
         return tex2_weight((tc.p.x, tc.p.y, tc.p.z),
                            (_width(tc.dpdx.x, tc.dpdy.x), _width(tc.dpdx.y, tc.dpdy.y),
-                            _width(tc.dpdx.z, tc.dpdy.z)), self.aamode)
+                            _width(tc.dpdx.z, tc.dpdy.z)), closed)
 
     def evaluate(self, si, kind, active):
         w = self.weight(si)

@@ -135,6 +135,28 @@ def test_pixel_values_equal_high_spp_pixel_average(rng):
     assert err < 4 * noise + 2e-3, (err, noise)
 
 
+def test_checkerboard_area_filters_the_pixel(rng):
+    """``pbrt_checkerboard`` ``aamode="area"`` opts in like ``box``: two 1-spp renders agree on
+    interior pixels (< 1e-4, as above), and they match the pixel average of the point-sampled
+    checkerboard (``aamode="none"``, 1024 spp in two halves) within 4× the reference's noise
+    plus 2e-3 (the parallelogram approximation, as above)."""
+    cells = {'tex1': 0.1, 'tex2': 0.9, 'uscale': 6.0, 'vscale': 6.0}
+    scene = mi.load_dict(scene_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', **cells}))
+    mask = interior_pixels(scene)
+    a = np.array(mi.render(scene, spp=1, seed=1))
+    b = np.array(mi.render(scene, spp=1, seed=2))
+    assert mask.sum() > 100
+    assert np.abs(a - b)[mask].max() < 1e-4
+    ref_scene = mi.load_dict(scene_dict({'type': 'pbrt_checkerboard', 'aamode': 'none', **cells},
+                                        footprint='sample'))
+    halves = [np.array(mi.render(ref_scene, spp=512, seed=10 + k)) for k in range(2)]
+    ref = 0.5 * (halves[0] + halves[1])
+    noise = np.sqrt(np.mean((halves[0] - halves[1])[mask] ** 2)) / 2
+    err = np.sqrt(np.mean((a - ref)[mask] ** 2))
+    print(f"checkerboard area, pixel mode 1 spp RMSE {err:.5f}, reference noise {noise:.5f}")
+    assert err < 4 * noise + 2e-3, (err, noise)
+
+
 def test_pixel_footprint_errors(rng):
     with pytest.raises(RuntimeError) as e:
         mi.render(mi.load_dict(scene_dict(box_texture(rng), rfilter='gaussian')), spp=1)
