@@ -144,6 +144,22 @@ def test_hard_cases_stay_finite_and_in_range(shape, wrap, rng):
     assert (out >= lo - 1e-5).all() and (out <= img.max() + 1e-5).all()
 
 
+def test_box_filter_needs_the_tables_of_its_wrap_mode(rng):
+    """Called directly, the box filter refuses missing tables or tables of another wrap mode."""
+    from mitsuba_pbrt_tex.box import build_box_tables
+    from mitsuba_pbrt_tex.filters import TextureFilter
+    from mitsuba_pbrt_tex.mapping import TexCoord2D
+    from mitsuba_pbrt_tex.mipmap import build_pyramid
+    pyr = build_pyramid(mi.TensorXf(rng.random((8, 8, 1)).astype(np.float32)))
+    filt = TextureFilter('box', 'repeat', 8.0, 1.0)
+    tc = TexCoord2D(mi.Point2f(0.5, 0.5), dsdx=mi.Float(0.1), dsdy=mi.Float(0),
+                    dtdx=mi.Float(0), dtdy=mi.Float(0.1))
+    for tables in (None, build_box_tables(pyr, 'clamp')):
+        with pytest.raises(ValueError, match='prefix tables'):
+            filt(pyr, tc, mi.Bool(True), tables)
+    assert np.isfinite(A(filt(pyr, tc, mi.Bool(True), build_box_tables(pyr, 'repeat')))).all()
+
+
 def test_box_refuses_octahedral_wrap():
     with pytest.raises(RuntimeError) as e:
         imagemap(np.ones((4, 4, 1)), wrap='octahedralsphere')

@@ -707,6 +707,41 @@ def test_eval_1_grad_with_footprint_matches_finite_differences(filt, convention,
     np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
 
 
+@pytest.mark.parametrize('invert', [False, True])
+def test_eval_1_grad_of_point_filter_is_zero_like_bitmap_nearest(invert, rng):
+    """``filter="point"`` is piecewise constant: ``eval_1_grad`` is 0 with or without a
+    footprint, as Mitsuba's ``bitmap`` with ``filter_type="nearest"`` returns (RGB image, so the
+    luminance path runs; ``invert`` reads the value too)."""
+    img = mi.TensorXf(rng.random((16, 16, 3)).astype(np.float32))
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'data': img, 'filter': 'point',
+                         'invert': invert})
+    ours.prepare_differentials()
+    theirs = mi.load_dict({'type': 'bitmap', 'data': img, 'filter_type': 'nearest',
+                           'raw': True})
+    n = 200
+    uv = rng.uniform(0, 1, (n, 2))
+    d = np.concatenate([np.zeros((n // 2, 2)), rng.uniform(-0.2, 0.2, (n - n // 2, 2))])
+    si = make_si(uv, d, d[::-1])
+    want = A(theirs.eval_1_grad(make_si(uv)))             # Mitsuba returns a literal 0
+    assert np.all(want == 0)
+    got = A(ours.eval_1_grad(si))
+    np.testing.assert_array_equal(got, np.broadcast_to(want, got.shape))
+
+
+@pytest.mark.parametrize('filt', ['bilinear', 'trilinear', 'ewa'])
+def test_eval_1_grad_beyond_the_top_level_is_zero(filt, rng):
+    """A footprint wider than the image selects the 1×1 top level, a constant: its gradient is
+    0 (a level below the top — 2×2 texels of random values — would give |grad| ~ 0.1–1)."""
+    img = mi.TensorXf(rng.random((32, 32, 3)).astype(np.float32))
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': img, 'filter': filt})
+    tex.prepare_differentials()
+    n = 100
+    uv = rng.uniform(0, 1, (n, 2))
+    width = rng.uniform(2, 50, n)
+    si = make_si(uv, np.stack([width, 0 * width], 1), np.stack([0 * width, width], 1))
+    np.testing.assert_allclose(A(tex.eval_1_grad(si)), 0, atol=1e-6)
+
+
 @pytest.mark.parametrize('convention,factor', [('v3', 1.0), ('v4', 2.0)])
 @pytest.mark.parametrize('filt', ['point', 'bilinear'])
 def test_single_level_filters_select_level_under_anisotropic_footprints(filt, convention, factor,
