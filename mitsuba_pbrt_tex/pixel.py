@@ -121,42 +121,53 @@ def current_pixels():
     return getattr(_STATE, 'pixels', None) if current_sensor() is not None else None
 
 
-#: Filter tables already made, by (variant, filter class, radius).
-_TABLES: dict = {}
-#: Intervals of the tabulated filter and of its lattice sum.
-FILTER_TABLE = 2048
+class _Lattice:
+    """The fractional position ``φ ∈ [0, 1)`` of a film offset ``v ~ f`` measured from the
+    pixel's corner has the density ``G(φ) = Σ_m f(φ + m - 1/2)`` (the filter's lattice sum,
+    within 1.5% of uniform for Mitsuba's Gaussian). Its CDF and the inverse, in closed form
+    from the windowed Gaussian ``f(x) = exp(-x²/2σ²) - exp(-r²/2σ²)`` (the function Mitsuba's
+    filter approximates to ~1e-7) — no table, so nothing created before a ``dr.freeze``
+    recording is read."""
 
+    def __init__(self, stddev: float, radius: float):
+        self.sigma, self.radius = stddev, radius
+        self.bias = math.exp(-radius * radius / (2 * stddev * stddev))
+        self.reach = int(math.ceil(radius)) + 1
+        z = sum(self._F_scalar(m + 0.5) - self._F_scalar(m - 0.5)
+                for m in range(-self.reach, self.reach + 1))
+        self.norm = 1.0 / z
 
-class _FilterTables:
-    """The 1D film filter ``f`` (``rfilter.eval``) tabulated once: on the host (numpy, for the
-    per-render draws) and, on the device, the distribution of the fractional position
-    ``φ ∈ [0, 1)`` of a film offset ``v ~ f`` measured from the pixel's corner: density
-    ``G(φ) = Σ_m f(φ + m - 1/2)`` (``mi.ContinuousDistribution``)."""
+    def _F_scalar(self, x):
+        x = min(max(x, -self.radius), self.radius)
+        s = self.sigma
+        return s * math.sqrt(math.pi / 2) * math.erf(x / (s * math.sqrt(2))) - self.bias * x
 
-    def __init__(self, rfilter):
-        self.radius = r = float(rfilter.radius())
-        self.reach = int(math.ceil(r)) + 1             # integer displacements |m| ≤ reach
-        xs = dr.linspace(mi.Float, -r, r, FILTER_TABLE + 1)
-        values = dr.maximum(rfilter.eval(xs), 0)
-        self.xs, self.f = np.linspace(-r, r, FILTER_TABLE + 1), np.array(values, np.float64)
-        phi = np.linspace(0.0, 1.0, FILTER_TABLE + 1)
-        self.g = sum(self.filter(phi + m - 0.5) for m in range(-self.reach, self.reach + 1))
-        self.phi = phi
-        self.g_cdf = np.concatenate([[0.0], np.cumsum(0.5 * (self.g[1:] + self.g[:-1]))])
-        self.g_cdf /= self.g_cdf[-1]
-        self.lattice = mi.ContinuousDistribution(mi.ScalarVector2f(0, 1),
-                                                 mi.Float(self.g.astype(np.float32)))
+    def _F(self, x):
+        x = dr.clip(x, -self.radius, self.radius)
+        s = self.sigma
+        return s * math.sqrt(math.pi / 2) * dr.erf(x * (1 / (s * math.sqrt(2)))) - self.bias * x
 
-    def filter(self, x):
-        return np.interp(x, self.xs, self.f, left=0.0, right=0.0)
+    def _f(self, x):
+        inside = dr.abs(x) < self.radius
+        return dr.select(inside, dr.exp(x * x * (-0.5 / self.sigma ** 2)) - self.bias, 0)
 
+    def cdf(self, phi):
+        total = mi.Float(0)
+        for m in range(-self.reach, self.reach + 1):
+            total += self._F(phi + (m - 0.5)) - self._F_scalar(m - 0.5)
+        return total * self.norm
 
-def _filter_tables(rfilter) -> _FilterTables:
-    key = (mi.variant(), rfilter.class_name(), float(rfilter.radius()))
-    tables = _TABLES.get(key)
-    if tables is None:
-        tables = _TABLES[key] = _FilterTables(rfilter)
-    return tables
+    def density(self, phi):
+        total = mi.Float(0)
+        for m in range(-self.reach, self.reach + 1):
+            total += self._f(phi + (m - 0.5))
+        return total * self.norm
+
+    def inverse(self, psi):
+        phi = mi.Float(psi)
+        for _ in range(4):              # Newton from the identity (G is within 1.5% of 1)
+            phi = dr.clip(phi - (self.cdf(phi) - psi) / self.density(phi), 0, 1 - 2 ** -24)
+        return phi
 
 
 class FilterPixels:
@@ -186,7 +197,7 @@ class FilterPixels:
     ``sample_border`` true.
     """
 
-    def __init__(self, film, seed: int = 0):
+    def __init__(self, film, seed=0):
         rfilter = film.rfilter()
         self.rfilter = rfilter
         self.radius = float(rfilter.radius())
@@ -194,43 +205,51 @@ class FilterPixels:
         size = film.crop_size()
         self.size = (int(size[0]), int(size[1]))
         self.offset = mi.ScalarVector2f(film.crop_offset())
-        self.tables = _filter_tables(rfilter)
-        self.seed = int(seed)
+        self.lattice = _Lattice(self.stddev, self.radius)
+        # the render's seed (an int, or a UInt32 under dr.freeze): opaque, one kernel for all
+        self.seed = seed if isinstance(seed, mi.UInt32) else dr.opaque(mi.UInt32, int(seed))
         self.n = None
 
-    def host_draw(self, n: int, seed: int):
-        """(ρ, φ, m) for ``n`` samples per pixel from ``seed`` (numpy; see the class)."""
-        t = self.tables
-        a = int(math.ceil(math.sqrt(n)))
-        b = int(math.ceil(n / a))
-        rng = np.random.default_rng([int(seed) & 0xffffffff, n, 0x9e3779b9])
-        rho = rng.random(2)
-        s = np.arange(n)
-        cells = (np.stack([s % a, s // a], 1) + 0.5) / np.array([a, b])
-        phi = np.interp((rho + cells) % 1.0, t.g_cdf, t.phi)
-        phi = np.minimum(phi, np.nextafter(np.float32(1), np.float32(0)))
-        ms = np.arange(-t.reach, t.reach + 1)
-        m = np.empty((n, 2))
-        for axis in range(2):
-            w = t.filter(phi[:, axis, None] + ms[None, :] - 0.5)
-            cdf = np.cumsum(w, 1)
-            u = rng.random(n) * cdf[:, -1]
-            m[:, axis] = ms[np.minimum((cdf < u[:, None]).sum(1), len(ms) - 1)]
-        return rho, phi, m
-
     def draw(self, n: int):
-        """This render's offsets for ``n`` samples per pixel (host draws from the seed, one
-        upload; opaque, so symbolic calls read them and kernels are reused across renders)."""
+        """This render's offsets for ``n`` samples per pixel, drawn on the device from the
+        seed (``mi.sample_tea_float32``; no host round trip, so ``dr.freeze`` records it), and
+        made opaque: symbolic calls read them, and kernels are reused across renders. The
+        tables hold ``n + 1`` entries: a gather from a 1-entry array would be turned into its
+        value, a literal (a new kernel for every value drawn)."""
+        t = self.lattice
         self.n = n = int(n)
-        self.a = int(math.ceil(math.sqrt(n)))
-        self.b = int(math.ceil(n / self.a))
-        rho, phi, m = self.host_draw(n, self.seed)
-        # one padding entry: a gather from a 1-entry array is turned into its value, a literal
-        # (a new kernel for every value drawn)
-        phi, m = np.concatenate([phi, phi[:1]]), np.concatenate([m, m[:1]])
-        self.rho_jit = mi.Point2f(float(rho[0]), float(rho[1]))
-        self.m = mi.Point2f(m[:, 0].astype(np.float32), m[:, 1].astype(np.float32))
-        self.phi = mi.Point2f(phi[:, 0].astype(np.float32), phi[:, 1].astype(np.float32))
+        self.a = a = int(math.ceil(math.sqrt(n)))
+        self.b = int(math.ceil(n / a))
+        seed = self.seed
+        k = dr.arange(mi.UInt32, n + 1)
+        s = dr.select(k < n, k, 0)
+        rho = mi.Point2f(mi.sample_tea_float32(seed, mi.UInt32(0xfffffff0), 4),
+                         mi.sample_tea_float32(seed, mi.UInt32(0xfffffff1), 4))
+        cells = (mi.Point2f(mi.Float(s % a), mi.Float(s // a)) + 0.5) \
+            / mi.ScalarPoint2f(a, self.b)
+        psi = dr.gather(mi.Point2f, rho, mi.UInt32(0)) + cells
+        psi = psi - dr.floor(psi)
+        phi, m = [], []
+        for axis in range(2):
+            p = t.inverse(psi[axis])
+            # m with probability f(φ + m - 1/2) / G(φ)
+            js = list(range(-t.reach, t.reach + 1))
+            weights = [dr.maximum(self.rfilter.eval(p + (j - 0.5)), 0) for j in js]
+            total = weights[0]
+            for w in weights[1:]:
+                total = total + w
+            u = mi.sample_tea_float32(seed, k * 2 + axis, 4) * total
+            pick, cum, done = mi.Float(js[-1]), mi.Float(0), mi.Bool(False)
+            for j, w in zip(js, weights):
+                cum = cum + w
+                take = ~done & (cum > u)
+                pick = dr.select(take, j, pick)
+                done |= take
+            phi.append(p)
+            m.append(pick)
+        self.rho_jit = mi.Point2f(dr.gather(mi.Point2f, rho, mi.UInt32(0)))
+        self.phi = mi.Point2f(phi[0], phi[1])
+        self.m = mi.Point2f(m[0], m[1])
         dr.make_opaque(self.m, self.phi, self.rho_jit)
 
     def film_positions(self, pixel, index):
@@ -243,10 +262,9 @@ class FilterPixels:
     def decode(self, x):
         """(pixel, ok): the pixel (crop coordinates) whose sample lies at film position ``x``
         (Point2f); ``ok`` false where ``x`` lies in no sample's cell."""
-        lattice = self.tables.lattice
         cell = []
         for axis, count in ((0, self.a), (1, self.b)):
-            psi = lattice.eval_cdf_normalized(x[axis] - dr.floor(x[axis]))
+            psi = self.lattice.cdf(x[axis] - dr.floor(x[axis]))
             rel = psi - self.rho_jit[axis]
             rel = rel - dr.floor(rel)
             cell.append(dr.minimum(dr.floor(rel * count), count - 1))

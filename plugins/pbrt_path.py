@@ -244,7 +244,7 @@ class Plugin:
             raise PluginError(f'{self.NAME}: parameter "silhouette_spp": value '
                               f'{self.silhouette_spp} needs the film filter "box", got '
                               f'{film.rfilter().class_name()}; use 0 with "gaussian"')
-        self._pixels = pixel.FilterPixels(film, _seed_value(seed))
+        self._pixels = pixel.FilterPixels(film, seed)
         return _PixelSensor(sensor, self._pixels)
 
     def pixel_sensor(self, sensor):
@@ -640,14 +640,6 @@ class _PixelSensor:
 
     def __getattr__(self, name):
         return getattr(self.sensor, name)
-
-
-def _seed_value(seed) -> int:
-    """The render's seed as a Python int (Mitsuba passes an int or a 1-lane UInt32)."""
-    try:
-        return int(seed)
-    except TypeError:
-        return int(dr.slice(mi.UInt32(seed), 0))
 
 
 def _interaction(si):
