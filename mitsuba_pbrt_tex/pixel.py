@@ -89,7 +89,6 @@ import threading
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from .differentials import TextureEvalContext
 from .raydiff import uv_partials
