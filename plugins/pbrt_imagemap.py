@@ -60,7 +60,8 @@ level, built once with the pyramid (float64, RGB padded to RGBA: 320 bytes per R
 ``trilinear``. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
 their pixel's footprint (every sample of a pixel sees its average; right for albedo and
 emission, not for roughness or bump maps, whose shading is not linear in the texture — use
-another filter there).
+another filter there). With a Gaussian film filter they filter the film filter's own kernel
+around the pixel centre instead (:mod:`mitsuba_pbrt_tex.gauss`).
 
 Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a
@@ -94,14 +95,14 @@ import threading
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex import pixel
+from mitsuba_pbrt_tex import gauss, pixel
 from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
                                     parse_encoding, release_build_temporaries, warn_clamped)
 from mitsuba_pbrt_tex.mapping import mapping_2d
-from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, Pyramid, build_pyramid
+from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid, build_pyramid
 from mitsuba_pbrt_tex.params import PluginError
 from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
                                        uv_axes)
@@ -300,12 +301,33 @@ class Plugin(PbrtTexture):
         return TextureEvalContext.from_si(si)
 
     def _value(self, si, active):
-        tc = self.mapping.map(self.context(si))
-        pyr = self._lookup_pyramid()
-        v = self.filter(pyr, tc, active, self._sync_box_tables()) * self.scale
+        pixels = pixel.current_pixels() if self.filter_name == 'box' else None
+        if pixels is not None:
+            v = self._film_filtered(si, active, pixels) * self.scale
+        else:
+            tc = self.mapping.map(self.context(si))
+            pyr = self._lookup_pyramid()
+            v = self.filter(pyr, tc, active, self._sync_box_tables()) * self.scale
         if self.invert:
             v = dr.maximum(0, 1 - v)
         return v
+
+    def _film_filtered(self, si, active, pixels):
+        """``pbrt_path`` ``footprint="pixel"`` with a Gaussian film: the film filter's kernel
+        around the pixel centre (:func:`mitsuba_pbrt_tex.gauss.pixel_filter`) for camera hits,
+        the sample-centred box elsewhere."""
+        active = mi.Bool(active)
+        centre, g, h, ok = pixel.filter_context(si, pixels)
+        tc = self.mapping.map(centre)
+        pyr = self._lookup_pyramid()
+        tables = self._sync_box_tables()
+        kernel = gauss.pixel_filter(MIPMap(pyr, self.wrap), tc.st,
+                                    mi.Vector2f(tc.dsdx, tc.dtdx), mi.Vector2f(tc.dsdy, tc.dtdy),
+                                    g, h, pixels.stddev, pixels.radius, pixels.rfilter,
+                                    active & ok)
+        tc_sample = self.mapping.map(TextureEvalContext.from_si(si))
+        sample = self.filter(pyr, tc_sample, active & ~ok, tables)
+        return dr.select(ok, kernel, sample)
 
     def evaluate(self, si, kind, active):
         v = self._value(si, active)

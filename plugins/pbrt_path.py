@@ -14,8 +14,8 @@ hit before its BSDF is evaluated or sampled.
 | hide_emitters | boolean | false | hide directly visible emitters | no |
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
-| footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` film filter) | no |
-| silhouette_spp | integer | 0 | `footprint="pixel"`: this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; primal renders only | no |
+| footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` or `gaussian` film filter) | no |
+| silhouette_spp | integer | 0 | `footprint="pixel"`: this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; primal renders with a `box` film filter only | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (uv partials at the first hit; 2 channels each) | no |
 
 Where the differentials come from:
@@ -37,6 +37,16 @@ pixel without any per-lane data passed to it). This is exact for textures that e
 linearly (albedo, emission); a roughness, bump or opacity texture would converge to the shading
 of the pixel-averaged texture, so only opting-in filters are pixel-centred, the other textures
 and later bounces keep the sample's footprint (``si.duv_dx``/``si.duv_dy`` are unchanged).
+
+With a ``gaussian`` film filter (Mitsuba's default) a sample would splat into every pixel within
+the filter's radius: instead each pixel draws its film positions from the filter and counts its
+samples alone, at offsets shared by all pixels in a render so that the pixel can be found
+from the position (:class:`~mitsuba_pbrt_tex.pixel.FilterPixels`),
+and the opting-in texture filters the film filter's own kernel around the pixel centre
+(:mod:`mitsuba_pbrt_tex.gauss`). The image converges to the Gaussian-filtered one. Mitsuba's
+``render``/``render_forward``/``render_backward`` are not copied: :meth:`Plugin.render` and the
+two others hand them a view of the sensor whose film makes image blocks without the filter
+(:meth:`Plugin.pixel_view`).
 
 The partials are least-squares solved in the tangent frame, made finite and clamped to ±1e8, and
 written to ``si.duv_dx``/``si.duv_dy``, so any texture — ours, Mitsuba's, or a Python texture of
@@ -67,7 +77,9 @@ where differentials need it:
 * optional AOVs with the first hit's uv partials;
 * ``footprint="pixel"``: ``sample()`` publishes the sensor to opting-in textures while it is
   traced (or run, in wavefront mode) — see :mod:`mitsuba_pbrt_tex.pixel`; the light transport,
-  the random numbers and ``si`` are those of ``footprint="sample"``;
+  the random numbers and ``si`` are those of ``footprint="sample"`` (with a box film filter;
+  with a Gaussian one the camera rays go through offsets drawn from the filter, shared by all
+  pixels in a render, and each sample counts in the pixel decoded from its first hit);
 * ``silhouette_spp > 0`` (with ``footprint="pixel"``, primal renders only): after the sample's
   path, five camera rays per lane (the pixel's centre and corners) find the pixels that cross a
   silhouette; those lanes, compacted, trace ``silhouette_spp`` more paths through random points
@@ -95,7 +107,7 @@ def _prb_helpers():
 
 FOOTPRINTS = ('sample', 'pixel')
 PIXEL_SENSORS = ('PerspectiveCamera',)
-PIXEL_FILTERS = ('BoxFilter',)
+PIXEL_FILTERS = ('BoxFilter', 'GaussianFilter')
 AOV_CHANNELS = {'duv_dx': ('duv_dx.u', 'duv_dx.v'), 'duv_dy': ('duv_dy.u', 'duv_dy.v')}
 
 
@@ -181,11 +193,59 @@ class Plugin:
             return raydiff.CameraFootprint(sensor)
 
     def sample_rays(self, scene, sensor, sampler):
-        """The base class's camera rays; remembers the sensor for the camera approximation."""
+        """The base class's camera rays; remembers the sensor for the camera approximation.
+        With a Gaussian film and ``footprint="pixel"`` (``sensor`` is then the
+        :class:`_PixelSensor` view made by :meth:`render`): the rays through film positions
+        drawn from the filter around each pixel (offsets shared by all pixels, so that the
+        pixel can be found again from the position: :class:`~mitsuba_pbrt_tex.pixel.
+        FilterPixels`), and the pixel centre as the position to count them at."""
+        pixels = getattr(sensor, 'pixels', None)
+        sensor = getattr(sensor, 'sensor', sensor)
         self._sensor = sensor
         ray, weight, pos = self._pbrt_base.sample_rays(self, scene, sensor, sampler)
-        self._pixel_pos = pos         # with a box filter: the sample's pixel (silhouette_spp)
+        if pixels is not None:
+            ray, weight, pos = pixels.rays(sensor, ray, pos, sampler.sample_count())
+        self._pixel_pos = pos         # box filter: the sample's pixel; Gaussian: its centre
         return ray, weight, pos
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """``ADIntegrator.render``, given :meth:`pixel_view` of the sensor."""
+        return self._pbrt_base.render(self, scene, self.pixel_view(scene, sensor, seed), seed,
+                                      spp, develop, evaluate)
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        """``RBIntegrator.render_forward``, given :meth:`pixel_view` of the sensor."""
+        return self._pbrt_base.render_forward(self, scene, params,
+                                              self.pixel_view(scene, sensor, seed), seed, spp)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        """``RBIntegrator.render_backward``, given :meth:`pixel_view` of the sensor."""
+        return self._pbrt_base.render_backward(self, scene, params, grad_in,
+                                               self.pixel_view(scene, sensor, seed), seed, spp)
+
+    def pixel_view(self, scene, sensor, seed=0):
+        """The sensor Mitsuba's ``render`` methods are given: the sensor itself, except with
+        ``footprint="pixel"``, a Gaussian film filter and a texture that uses differentials —
+        then a :class:`_PixelSensor`, whose film makes image blocks that do not splat (each
+        sample counts in the one pixel it was drawn for, :meth:`sample_rays`) and which
+        carries the render's :class:`~mitsuba_pbrt_tex.pixel.FilterPixels`. Mitsuba's
+        ``render``, ``render_forward``, ``render_backward`` run unchanged on it."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        self._pixels = None
+        if self.footprint_mode != 'pixel' or not self.needs_differentials(scene):
+            return sensor
+        self.pixel_sensor(sensor)                   # the errors, in our words
+        film = sensor.film()
+        if film.rfilter().class_name() == 'BoxFilter':
+            return sensor
+        if self.silhouette_spp:
+            raise PluginError(f'{self.NAME}: parameter "silhouette_spp": value '
+                              f'{self.silhouette_spp} needs the film filter "box", got '
+                              f'{film.rfilter().class_name()}; use 0 with "gaussian"')
+        self._pixels = pixel.FilterPixels(film, seed)
+        return _PixelSensor(sensor, self._pixels)
 
     def pixel_sensor(self, sensor):
         """The sensor to publish for ``footprint="pixel"`` (None for ``sample``); an error names
@@ -200,8 +260,8 @@ class Plugin:
         rfilter = sensor.film().rfilter().class_name()
         if rfilter not in PIXEL_FILTERS:
             raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs the '
-                              f'film filter "box", got {rfilter}; accepted values: '
-                              f'{", ".join(FOOTPRINTS)}')
+                              f'film filter "box" or "gaussian", got {rfilter}; accepted '
+                              f'values: {", ".join(FOOTPRINTS)}')
         return sensor
 
     # ------------------------------------------------------------------ the path tracer
@@ -218,8 +278,16 @@ class Plugin:
                               f'primal renders; differentiable renders need 0')
         if published is None:
             return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
-        with pixel.published(published):
-            out = self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
+        pixels = getattr(self, '_pixels', None)
+        if pixels is None and sensor.film().rfilter().class_name() != 'BoxFilter':
+            # a Gaussian film, but the rays are not ours (sample() called without render()):
+            # the textures keep the sample's footprint
+            return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
+        with pixel.published(published, pixels):
+            out = self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep,
+                             pixels=pixels)
+            if pixels is not None:
+                self.count_in_decoded_pixel(pixels)
             if extra:
                 L, valid, aovs, state = out
                 edge = self.silhouette_pixels(scene, sensor, mi.Bool(active))
@@ -227,6 +295,18 @@ class Plugin:
                 L = dr.select(edge, (L + acc) * (1.0 / (extra + 1)), L)
                 out = (L, valid, aovs, L)
             return out
+
+    def count_in_decoded_pixel(self, pixels):
+        """Gaussian film: count each camera hit in the pixel its film position decodes to —
+        the pixel its textures centred on (:meth:`trace` decodes it exactly as they do) — by
+        updating, in place, the positions ``sample_rays`` returned (the object Mitsuba's
+        ``render`` splats with). Samples drawn for pixel c decode to c unless rounding moves a
+        hit by more than half a stratum (≥ 1/64 pixel up to 1024 spp); were it ever to happen,
+        the texture and the film would still agree on the pixel."""
+        pix, ok = self._decoded
+        pos = self._pixel_pos
+        new = dr.select(ok, mi.Vector2f(pix) + pixels.offset + 0.5, mi.Vector2f(pos))
+        pos.x, pos.y = new.x, new.y
 
     def silhouette_paths(self, scene, sensor, sampler, edge, prep):
         """Sum of the extra paths of the ``edge`` lanes (0 elsewhere). Outside a symbolic scope
@@ -303,10 +383,13 @@ class Plugin:
         return acc
 
     @dr.syntax
-    def trace(self, mode, scene, sampler, ray, δL, state_in, active, prep=None, **kwargs):
+    def trace(self, mode, scene, sampler, ray, δL, state_in, active, prep=None, pixels=None,
+              **kwargs):
         """The path tracer. The stages are those of Mitsuba 3.9's ``prb`` (same helpers, same
         order of random numbers), plus the stages marked "differentials". ``prep``: what
-        :meth:`prepare_trace` returns."""
+        :meth:`prepare_trace` returns. ``pixels`` (Gaussian film, ``footprint="pixel"``): the
+        pixel of each camera hit is decoded as the textures decode it, and left in
+        ``self._decoded`` (pixel, ok)."""
         mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
@@ -318,6 +401,8 @@ class Plugin:
         else:
             diff = RayDiff()
         first_duv_dx, first_duv_dy = mi.Vector2f(0), mi.Vector2f(0)
+        sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
+        decoded, decoded_ok = mi.Point2f(0), mi.Bool(False)
 
         # ---- loop state (as prb) -------------------------------------------------------------
         ray = mi.Ray3f(dr.detach(ray))
@@ -353,6 +438,17 @@ class Plugin:
                     si_detached = dr.detach(si)
                     wi_global = dr.normalize(si_prev.p - si_detached.p)
                     si.wi = dr.replace_grad(si.wi, si_detached.to_local(wi_global))
+
+            # ---- Gaussian film: the pixel a camera hit counts in (as the textures find it) --
+            if dr.hint(pixels is not None, mode='scalar'):
+                at_camera = active & (depth == 0) & si.is_valid()
+                pix, pix_ok = dr.if_stmt(
+                    args=(at_camera,), cond=at_camera,
+                    true_fn=lambda m: pixel.sample_pixel(sensor, si, pixels),
+                    false_fn=lambda m: (mi.Point2f(0), mi.Bool(False)),
+                    label='pbrt_path: pixel')
+                decoded = dr.select(at_camera & pix_ok, pix, decoded)
+                decoded_ok |= at_camera & pix_ok
 
             # ---- differentials: footprint of this hit → si.duv_dx, si.duv_dy ---------------
             dpdx, dpdy = mi.Vector3f(0), mi.Vector3f(0)
@@ -506,7 +602,44 @@ class Plugin:
         for a in self.aov_list:
             v = first_duv_dx if a == 'duv_dx' else first_duv_dy
             aovs += [v.x, v.y]
+        if dr.hint(pixels is not None, mode='scalar'):
+            self._decoded = (decoded, decoded_ok)
         return (L if primal else δL, depth != 0, aovs, L)
+
+
+class _PixelFilm:
+    """A film seen through ``footprint="pixel"`` with a Gaussian filter: everything is the
+    film's, except that :meth:`create_block` gives blocks without the filter (a sample counts in
+    the pixel of its position alone; ``ImageBlock`` treats a missing filter as the box)."""
+
+    def __init__(self, film):
+        self.film = film
+
+    def __getattr__(self, name):
+        return getattr(self.film, name)
+
+    def create_block(self, *args, **kwargs):
+        block = self.film.create_block(*args, **kwargs)
+        return mi.ImageBlock(block.size(), block.offset(), block.channel_count(), None,
+                             border=False, normalize=block.normalize(),
+                             coalesce=block.coalesce(), warn_negative=block.warn_negative(),
+                             warn_invalid=block.warn_invalid())
+
+
+class _PixelSensor:
+    """The sensor as :meth:`Plugin.pixel_view` gives it to Mitsuba's ``render`` methods: the
+    sensor's own methods, the film of :class:`_PixelFilm`, and the render's ``pixels``."""
+
+    def __init__(self, sensor, pixels):
+        self.sensor = sensor
+        self.pixels = pixels
+        self._film = _PixelFilm(sensor.film())
+
+    def film(self):
+        return self._film
+
+    def __getattr__(self, name):
+        return getattr(self.sensor, name)
 
 
 def _interaction(si):

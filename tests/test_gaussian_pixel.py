@@ -1,0 +1,302 @@
+"""pbrt_path ``footprint="pixel"`` with Mitsuba's ``gaussian`` film filter (issue #14): the
+film positions drawn from the filter and the pixel encoded in them (round trip, distribution);
+the texture kernel (the filter around the pixel centre, warped by the perspective) against numpy
+integration of the bilinear texture; 1-spp renders equal between seeds on interior pixels
+(symbolic loop, symbolic BSDF call, wavefront mode); the image against an independent
+Gaussian-weighted reference (Mitsuba's ``path`` + ``bitmap`` with the Gaussian film); errors;
+texel gradients against finite differences."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from conftest import A
+from test_pixel_footprint import RES, box_texture, interior_pixels, scene_dict
+
+T = mi.ScalarTransform4f
+
+
+def gaussian_film(width=24, height=16, border=False):
+    return mi.load_dict({'type': 'hdrfilm', 'width': width, 'height': height,
+                         'sample_border': border, 'rfilter': {'type': 'gaussian'}})
+
+
+def filter_1d(x, stddev=0.5, radius=2.0):
+    """Mitsuba's windowed Gaussian (its LLVM polynomial approximates this to ~1e-7)."""
+    v = np.exp(-x * x / (2 * stddev ** 2)) - np.exp(-radius * radius / (2 * stddev ** 2))
+    return np.where(np.abs(x) < radius, np.maximum(v, 0), 0)
+
+
+# ----------------------------------------------------------------------------- film positions
+@pytest.mark.parametrize('n', [1, 5, 16])
+def test_film_positions_decode_to_their_pixel(n, rng):
+    """Every film position of sample s of pixel c decodes to c, also moved by up to 0.2 of the
+    decoding margin (half a cell of the a × b grid in ψ: 1/(2a) of ψ, at least 1/(2a·max G/∫G)
+    pixel), in any direction."""
+    from mitsuba_pbrt_tex.pixel import FilterPixels
+    pixels = FilterPixels(gaussian_film(), seed=7)
+    pixels.draw(n)
+    count = 20000
+    c = rng.integers(0, [24, 16], size=(count, 2)).astype(np.float32)
+    index = rng.integers(0, n, size=count).astype(np.uint32)
+    x = A(pixels.film_positions(mi.Point2f(c[:, 0], c[:, 1]), mi.UInt32(index)))
+    margin = 0.2 * 0.5 / pixels.a * 0.95
+    for shift in ([0, 0], [margin, -margin], [-margin, margin]):
+        xs = x + np.array(shift, np.float32)
+        pix, ok = pixels.decode(mi.Point2f(xs[:, 0], xs[:, 1]))
+        assert A(ok).all()
+        np.testing.assert_array_equal(A(pix), c)
+
+
+def test_film_offsets_follow_the_filter():
+    """The offsets v = φ + m - 1/2 drawn on the device (2000 renders of 1 sample per pixel, 250
+    of 16) have the filter's distribution per axis: Kolmogorov–Smirnov distance to the numpy
+    CDF of exp(-x²/2σ²) - exp(-8) below 0.045 and 0.03 (the 99.9% bounds for 2000 and 4000
+    independent samples are 0.044 and 0.031; the 16 of a render are stratified, which only
+    lowers it); the lattice CDF and its inverse agree; within one render the 16 samples' cells
+    are distinct."""
+    from mitsuba_pbrt_tex.pixel import FilterPixels
+    film = gaussian_film()
+    grid = np.linspace(-2, 2, 40001)
+    cdf = np.cumsum(filter_1d(grid))
+    cdf /= cdf[-1]
+    for n, renders, bound in ((1, 2000, 0.045), (16, 250, 0.03)):
+        v = []
+        for seed in range(renders):
+            pixels = FilterPixels(film, seed)
+            pixels.draw(n)
+            v.append((A(pixels.phi) + A(pixels.m) - 0.5)[:n])
+        v = np.concatenate(v)
+        for axis in range(2):
+            d = np.sort(v[:, axis])
+            ks = np.abs(np.interp(d, grid, cdf) - np.arange(1, len(d) + 1) / len(d)).max()
+            assert ks < bound, (n, axis, ks)
+    lattice = FilterPixels(film).lattice
+    psi = np.linspace(0, 1, 1001, dtype=np.float32)[:-1]
+    np.testing.assert_allclose(A(lattice.cdf(lattice.inverse(mi.Float(psi)))), psi, atol=1e-6)
+    pixels = FilterPixels(film, 1)
+    pixels.draw(16)
+    phi = A(pixels.phi)[:16]
+    assert len({tuple(np.round(p, 6)) for p in phi}) == 16
+
+
+def test_camera_hits_decode_to_the_pixel_their_ray_was_drawn_for(rng):
+    """The round trip the textures make: rays through the encoded film positions of every pixel
+    (16 per pixel), their hits projected back to the film (pixel.sample_pixel, what pbrt_path
+    and the textures call) — every hit decodes to its ray's pixel."""
+    from mitsuba_pbrt_tex import pixel
+    scene = mi.load_dict(scene_dict(box_texture(rng), rfilter='gaussian'))
+    sensor = scene.sensors()[0]
+    pixels = pixel.FilterPixels(sensor.film(), seed=5)
+    pixels.draw(16)
+    w, h = RES
+    ys, xs = np.mgrid[0:h, 0:w]
+    c = np.repeat(np.stack([xs.ravel(), ys.ravel()], 1), 16, 0).astype(np.float32)
+    index = np.tile(np.arange(16, dtype=np.uint32), w * h)
+    x = pixels.film_positions(mi.Point2f(c[:, 0], c[:, 1]), mi.UInt32(index))
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, x / mi.ScalarVector2f(w, h),
+                                            mi.Point2f(0.5), True)
+    si = scene.ray_intersect(mi.Ray3f(ray))
+    pix, ok = pixel.sample_pixel(sensor, si, pixels)
+    ok, pix = A(ok), A(pix)
+    assert ok.sum() > 0.5 * len(ok)
+    assert (ok == A(si.is_valid())).all()
+    np.testing.assert_array_equal(pix[ok], c[ok])
+
+
+# ----------------------------------------------------------------------------- texture kernel
+def bilinear_repeat(img, s, t):
+    h, w = img.shape[:2]
+    px, py = s * w - 0.5, t * h - 0.5
+    x0, y0 = np.floor(px).astype(int), np.floor(py).astype(int)
+    fx, fy = (px - x0)[..., None], (py - y0)[..., None]
+
+    def tex(x, y):
+        return img[y % h, x % w]
+    return ((1 - fy) * ((1 - fx) * tex(x0, y0) + fx * tex(x0 + 1, y0))
+            + fy * ((1 - fx) * tex(x0, y0 + 1) + fx * tex(x0 + 1, y0 + 1)))
+
+
+def reference_kernel(img, st, d0, d1, g, h, n=801):
+    """∫∫ f(a) f(b) T(st(a, b)) / ∫∫ f f over the film offsets (a, b) ∈ [-2, 2]² (trapezoid-like
+    grid of n² points), st(a, b) = st + (a·d0 + b·d1)/(1 + a·g + b·h), T bilinear (repeat)."""
+    a = np.linspace(-2, 2, n)
+    A_, B_ = np.meshgrid(a, a, indexing='ij')
+    wgt = filter_1d(A_) * filter_1d(B_)
+    den = 1 + A_ * g + B_ * h
+    s = st[0] + (A_ * d0[0] + B_ * d1[0]) / den
+    t = st[1] + (A_ * d0[1] + B_ * d1[1]) / den
+    v = bilinear_repeat(img, s, t)
+    return (v * wgt[..., None]).sum((0, 1)) / wgt.sum()
+
+
+KERNEL_CASES = [
+    # (d0, d1 in texels per pixel, g, h, tolerance): magnification, isotropic, anisotropic,
+    # rotated, perspective (level 0 or finer), then minification onto MIP levels 1–2
+    ((0.05, 0.0), (0.0, 0.05), 0.0, 0.0, 1e-3),
+    ((0.4, 0.1), (-0.1, 0.3), 0.0, 0.0, 1e-3),
+    ((1.5, 0.0), (0.0, 1.5), 0.05, -0.08, 1e-3),
+    ((3.0, 1.0), (-0.5, 0.8), 0.1, 0.05, 1e-3),
+    ((6.0, 0.0), (0.0, 0.7), -0.1, 0.1, 1e-3),
+    ((5.0, 2.0), (-2.0, 5.0), 0.0, 0.0, 1e-3),
+    ((12.0, 3.0), (-1.0, 6.0), 0.05, 0.1, 1e-3),
+    ((20.0, 0.0), (0.0, 16.0), 0.0, 0.0, 5e-3),
+    ((24.0, 6.0), (-4.0, 10.0), 0.08, -0.05, 5e-3),
+]
+
+
+@pytest.mark.parametrize('case', range(len(KERNEL_CASES)))
+def test_kernel_against_numpy_integration(case, rng):
+    """The pixel-centred Gaussian kernel of a 64² RGB white-noise image (the hardest content for
+    a MIP level) against numpy integration of its bilinear reconstruction over the film filter's
+    support (exact projective map). On level 0 or a finer lattice (smaller deviation up to ~4
+    texels): within 1e-3 of texels in [0, 1] (measured ≤ 5e-4: the fourth-order terms the
+    second-moment corrections leave); on MIP levels 1–2 (cases 7–8): within 5e-3 (measured
+    ≤ 2.4e-3: white-noise detail below a MIP texel, which any MIP filter loses)."""
+    from mitsuba_pbrt_tex import gauss
+    from mitsuba_pbrt_tex.mipmap import MIPMap, build_pyramid
+    d0, d1, g, h, tol = KERNEL_CASES[case]
+    size = 64
+    img = rng.random((size, size, 3)).astype(np.float32)
+    mip = MIPMap(build_pyramid(mi.TensorXf(img), True), 'repeat')
+    rfilter = mi.load_dict({'type': 'gaussian'})
+    n = 6
+    st = rng.random((n, 2)).astype(np.float32)
+    d0s = np.array(d0, np.float32) / size
+    d1s = np.array(d1, np.float32) / size
+    out = A(gauss.pixel_filter(
+        mip, mi.Point2f(st[:, 0], st[:, 1]), mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d0s]),
+        mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d1s]), mi.Float(np.full(n, g)),
+        mi.Float(np.full(n, h)), 0.5, 2.0, rfilter, True))
+    ref = np.array([reference_kernel(img.astype(np.float64), st[k], d0s, d1s, g, h)
+                    for k in range(n)])
+    err = np.abs(out - ref).max()
+    print(f'case {case}: max error {err:.2e}')
+    assert err < tol, err
+
+
+# ----------------------------------------------------------------------------- renders
+def gaussian_interior(scene):
+    """Interior pixels (centre and corners on the plane) whose whole filter support (±2 pixels)
+    is interior too."""
+    ok = interior_pixels(scene)
+    er = ok.copy()
+    h, w = ok.shape
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            shifted = np.zeros_like(ok)
+            ys = slice(max(0, dy), h + min(0, dy))
+            yd = slice(max(0, -dy), h + min(0, -dy))
+            xs = slice(max(0, dx), w + min(0, dx))
+            xd = slice(max(0, -dx), w + min(0, -dx))
+            shifted[yd, xd] = ok[ys, xs]
+            er &= shifted
+    return er
+
+
+def _with_flags(wavefront, fn):
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    old = [dr.flag(f) for f in flags]
+    try:
+        if wavefront:
+            for f in flags:
+                dr.set_flag(f, False)
+        return fn()
+    finally:
+        for f, v in zip(flags, old):
+            dr.set_flag(f, v)
+
+
+@pytest.mark.parametrize('mode', ['symbolic', 'symbolic-one-bsdf', 'wavefront'])
+def test_one_spp_interior_pixels_equal_between_seeds(mode, rng):
+    """Every sample counts in the pixel its texture lookup centred on, so two 1-spp renders of a
+    plane under constant lighting agree on interior pixels: < 1e-4 (float32 rounding); the
+    sample-centred box differs by > 1e-2 — the test can fail."""
+    tex = box_texture(rng)
+    scene = mi.load_dict(scene_dict(tex, rfilter='gaussian',
+                                    second_bsdf=mode != 'symbolic-one-bsdf'))
+    mask = gaussian_interior(scene)
+    a, b = _with_flags(mode == 'wavefront', lambda: [
+        np.array(mi.render(scene, spp=1, seed=s)) for s in (1, 2)])
+    assert mask.sum() > 60, mask.sum()
+    diff = np.abs(a - b)[mask]
+    assert diff.max() < 1e-4, diff.max()
+    sample = mi.load_dict(scene_dict(tex, footprint='sample', rfilter='gaussian'))
+    c = np.array(mi.render(sample, spp=1, seed=1)) - np.array(mi.render(sample, spp=1, seed=2))
+    assert np.abs(c[mask]).max() > 1e-2
+
+
+def test_image_converges_to_gaussian_filtered_reference(rng):
+    """Interior pixels at 1 spp against an independent Gaussian-weighted reference: Mitsuba's
+    ``path`` with ``bitmap`` (bilinear, the same texels) and the same Gaussian film, 2 × 2048
+    spp. If the pixel-mode image is the Gaussian-filtered one, the RMSE equals the reference's
+    own noise (measured: 1.00× at 2 × 512 spp, 0.95× at 2 × 4096, 1.03× at 2 × 16384, where the
+    noise is 3.3e-4); asserted: within 1.3× the noise plus 2e-4 (a bias of about 1e-3 fails).
+    Sample-centred filtering (``footprint="sample"``, box) is > 10× further at 1 spp."""
+    size, tiles = 16, 2.0
+    tex = box_texture(rng, size=size, tiles=tiles)
+    scene = mi.load_dict(scene_dict(tex, rfilter='gaussian'))
+    mask = gaussian_interior(scene)
+    img = np.array(mi.render(scene, spp=1, seed=3))
+    bitmap = {'type': 'bitmap', 'data': mi.TensorXf(np.array(tex['data'])), 'raw': True,
+              'to_uv': T().scale([tiles, tiles, 1])}
+    ref_scene = mi.load_dict({**scene_dict(bitmap, footprint='sample', rfilter='gaussian'),
+                              'integrator': {'type': 'path', 'max_depth': 2}})
+    halves = [np.array(mi.render(ref_scene, spp=2048, seed=10 + k)) for k in range(2)]
+    ref = 0.5 * (halves[0] + halves[1])
+    noise = np.sqrt(np.mean((halves[0] - halves[1])[mask] ** 2)) / 2
+    err = np.sqrt(np.mean((img - ref)[mask] ** 2))
+    sample = mi.load_dict(scene_dict(tex, footprint='sample', rfilter='gaussian'))
+    err_sample = np.sqrt(np.mean((np.array(mi.render(sample, spp=1, seed=3)) - ref)[mask] ** 2))
+    print(f'gaussian pixel-mode 1 spp RMSE {err:.5f} (sample-centred {err_sample:.5f}), '
+          f'reference noise {noise:.5f}, {mask.sum()} pixels')
+    assert err < 1.3 * noise + 2e-4, (err, noise)
+    assert err < 0.1 * err_sample, (err, err_sample)
+
+
+def test_frozen_steps_equal_unfrozen():
+    """dr.freeze over render + backward (Mitsuba's frozen-optimisation pattern, as for the box
+    film in test_pixel_footprint): the per-render offsets are drawn on the device from the
+    seed, so the frozen steps replay them — losses and texel gradients equal the unfrozen ones
+    (float32 rounding: 1e-5 relative, 5e-5 of the largest gradient)."""
+    from conftest import adam_steps
+    key = 'plane.bsdf.reflectance.data'
+    texels = np.random.default_rng(3).random((8, 8, 3)).astype(np.float32)
+
+    def load():
+        return mi.load_dict(scene_dict({'type': 'pbrt_imagemap', 'filter': 'box',
+                                        'data': mi.TensorXf(texels), 'uscale': 3.0,
+                                        'vscale': 3.0}, rfilter='gaussian', second_bsdf=False))
+
+    plain, _ = adam_steps(load, key, 4, False, spp=2)
+    frozen, recordings = adam_steps(load, key, 4, True, spp=2)
+    assert recordings < len(frozen)
+    for (loss_p, grad_p), (loss_f, grad_f) in zip(plain, frozen):
+        assert np.abs(grad_p).sum() > 0
+        assert loss_f == pytest.approx(loss_p, rel=1e-5)
+        np.testing.assert_allclose(grad_f, grad_p, rtol=0, atol=5e-5 * np.abs(grad_p).max())
+
+
+def test_silhouette_samples_need_the_box_filter(rng):
+    """(Other film filters: test_pixel_footprint.test_pixel_footprint_errors.)"""
+    import traceback
+    d = scene_dict(box_texture(rng), rfilter='gaussian')
+    d['integrator']['silhouette_spp'] = 4
+    with pytest.raises(RuntimeError) as e:
+        mi.render(mi.load_dict(d), spp=1)
+    text = ''.join(traceback.format_exception(e.value))
+    for word in ('"silhouette_spp"', '"box"', 'GaussianFilter'):
+        assert word in text, word
+
+
+@pytest.mark.parametrize('forward', [False, True])
+def test_texel_gradients_through_gaussian_pixel_footprint(forward, rng):
+    """Backward- and forward-mode texel gradients (Mitsuba's render_backward/render_forward on
+    the non-splatting film view) against central finite differences (the project's
+    check_gradient, 2%)."""
+    import test_gradients as tg
+    d = scene_dict(box_texture(rng, size=16), rfilter='gaussian', second_bsdf=False)
+    d['sensor']['film'].update(width=tg.RES, height=tg.RES)
+    d['integrator']['max_depth'] = 3
+    tg.check_gradient(mi.load_dict(d), 'plane.bsdf.reflectance.data', rng, forward=forward)
