@@ -903,3 +903,140 @@ def test_ewa_with_a_zero_minor_axis_is_a_level0_bilinear_lookup(rng):
     got = A(imagemap(img, filter='ewa').eval(make_si(uv, d0, d1)))
     want, _ = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], d0, d1, 8.0, 'repeat')
     np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------ pyramid details
+def _levels_of(pyr):
+    """The pyramid's levels read back from its buffer, at offsets summed from the level sizes."""
+    buf = np.array(pyr.buffer, dtype=np.float64)
+    out, off = [], 0
+    for w, h in pyr.sizes:
+        out.append(buf[pyr.stride * off: pyr.stride * (off + w * h)]
+                   .reshape(h, w, pyr.stride)[..., :pyr.channels])
+        off += w * h
+    return out
+
+
+def test_pyramid_of_non_finite_texels_averages_them_as_zero(rng):
+    """Non-finite texels count as 0 in every level (the levels are averages of the sanitized
+    texels, not sanitized averages: one NaN must not zero a whole coarse texel), and the buffer
+    holds exactly 4 (RGB: RGBA) floats per texel of all levels: ``nbytes``."""
+    from mitsuba_pbrt_tex.mipmap import build_pyramid
+    img = rng.random((12, 10, 3))
+    img[3, 4, 1] = np.nan
+    img[7, 2, 0] = np.inf
+    img[0, 9, 2] = -np.inf
+    pyr = build_pyramid(mi.TensorXf(img.astype(np.float32)))
+    want = ref.pyramid(np.where(np.isfinite(img), img, 0.0))
+    for got, lv in zip(_levels_of(pyr), want):
+        np.testing.assert_allclose(got, lv, atol=2e-6)
+    texels = sum(w * h for w, h in pyr.sizes)
+    assert pyr.nbytes() == 4 * 4 * texels
+
+
+@pytest.mark.parametrize('shape', [(2, 3), (3, 2), (2, 2), (1, 2)])
+def test_two_level_pyramids(shape, rng):
+    """Images whose pyramid has exactly two levels: level 1 is the image mean, and a footprint
+    covering the image reads it (point, bilinear and trilinear)."""
+    from mitsuba_pbrt_tex.mipmap import build_pyramid
+    img = rng.random(shape + (3,))
+    pyr = build_pyramid(mi.TensorXf(img.astype(np.float32)))
+    assert len(pyr.sizes) == 2
+    np.testing.assert_allclose(_levels_of(pyr)[1][0, 0], img.mean((0, 1)), atol=2e-6)
+    uv = rng.uniform(0, 1, (20, 2))
+    d = np.full((20, 2), 1.0)
+    for filt in ('point', 'bilinear', 'trilinear'):
+        tex = imagemap(img, filter=filt)
+        tex.prepare_differentials()
+        got = A(tex.eval(make_si(uv, d * [1, 0], d * [0, 1])))
+        np.testing.assert_allclose(got, np.tile(img.mean((0, 1)), (20, 1)), atol=2e-6)
+
+
+def test_build_pyramid_refuses_other_shapes():
+    from mitsuba_pbrt_tex.mipmap import build_pyramid
+    for shape in ((4, 4), (4, 4, 2), (4, 4, 4)):
+        with pytest.raises(ValueError, match='expected an'):
+            build_pyramid(mi.TensorXf(np.zeros(shape, np.float32)))
+
+
+@pytest.mark.parametrize('shape', [(16, 64), (64, 16), (48, 48), (15, 15), (32, 32)])
+@pytest.mark.parametrize('filt', ['point', 'bilinear'])
+def test_single_level_lookups_at_every_level_of_square_and_power_of_two_images(shape, filt, rng):
+    """Per-lane levels (where a level's offset has a closed form for square power-of-two images
+    and wrapping is a bit mask for power-of-two sides) against the reference pyramid: lookups
+    with isotropic footprints selecting each level in turn, repeat wrap, uv in [-1, 2]."""
+    img = rng.random(shape + (3,))
+    levels = ref.pyramid(img)
+    tex = imagemap(img, filter=filt)
+    tex.prepare_differentials()
+    n = 400
+    uv = rng.uniform(-1, 2, (n, 2))
+    lvl = rng.integers(0, len(levels), n)
+    width = (2.0 ** (lvl + 0.5)) / max(shape)               # mid-level: floor(log2) = lvl
+    got = A(tex.eval(make_si(uv, np.stack([width, 0 * width], 1), np.stack([0 * width, width], 1))))
+    want = np.empty((n, 3))
+    for k in range(n):
+        lv = levels[min(lvl[k], len(levels) - 1)]
+        h, w = lv.shape[:2]
+        if filt == 'bilinear':
+            want[k] = ref.bilinear(lv, uv[k:k + 1, 0], uv[k:k + 1, 1], 'repeat')[0]
+        else:
+            want[k] = ref.texel(lv, np.floor(uv[k:k + 1, 0] * w).astype(int),
+                                np.floor(uv[k:k + 1, 1] * h).astype(int), 'repeat')[0]
+    ok = np.ones(n, bool)
+    if filt == 'point':                      # exclude lookups within rounding of a texel edge
+        for k in range(n):
+            h, w = levels[lvl[k]].shape[:2]
+            for c, size in ((0, w), (1, h)):
+                p = uv[k, c] * size
+                ok[k] &= abs(p - np.round(p)) > 1e-4
+    np.testing.assert_allclose(got[ok], want[ok], atol=1e-5)
+
+
+def test_black_wrap_point_lookups_outside_are_zero_and_the_top_level_is_the_mean(rng):
+    """``black``: a point lookup outside the image is 0, at any level; a footprint that selects
+    exactly the top level (or beyond) reads its one texel, the image mean, as pbrt does — not a
+    bilinear blend of it with the black outside."""
+    img = rng.random((16, 16, 3)) + 0.1
+    tex = imagemap(img, filter='point', wrap='black')
+    tex.prepare_differentials()
+    uv = np.array([[-0.3, 0.5], [1.2, 0.5], [0.5, -0.01], [0.5, 1.5]])
+    for width in (0.0, 1 / 16, 1 / 4):
+        d = np.full((4, 2), width)
+        assert np.all(A(tex.eval(make_si(uv, d * [1, 0], d * [0, 1]))) == 0)
+    lin = imagemap(img, filter='bilinear', wrap='black')
+    lin.prepare_differentials()
+    uv = rng.uniform(0, 1, (50, 2))
+    for width in (1.0, 1.5, 8.0):                    # level log2(16·width) ≥ 4, the top
+        d = np.full((50, 2), width)
+        np.testing.assert_allclose(A(lin.eval(make_si(uv, d * [1, 0], d * [0, 1]))),
+                                   np.tile(img.mean((0, 1)), (50, 1)), atol=2e-6)
+
+
+def test_eval_1_grad_with_invert_matches_finite_differences(rng):
+    """``invert`` (1 - scale·v, clamped at 0) makes ``eval_1_grad`` read the value: its
+    derivative is -scale·grad where 1 - scale·v > 0 and 0 where clamped. With scale 2 and texels
+    in [0, 1] both cases occur; lookups within 0.02 of the clamp or 0.03 texel of a texel-centre
+    line are excluded. Central differences, h = 1e-4 in uv (0.0016 texel): rtol 1e-2, atol 2e-3
+    as in the footprint test above."""
+    res = 16
+    img = rng.random((res, res, 1))
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img.astype(np.float32)),
+                        'filter': 'bilinear', 'scale': 2.0, 'invert': True})
+    n = 400
+    uv = rng.uniform(0.05, 0.95, (n, 2))
+    h = 1e-4
+
+    def f(shift):
+        return A(tex.eval_1(make_si(uv + shift)))
+
+    fd = np.stack([(f([h, 0]) - f([-h, 0])) / (2 * h), (f([0, h]) - f([0, -h])) / (2 * h)], 1)
+    got = A(tex.eval_1_grad(make_si(uv)))
+    v = ref.bilinear(img, uv[:, 0], uv[:, 1], 'repeat')[:, 0]
+    ok = np.abs(1 - 2 * v) > 0.02
+    for c in range(2):
+        p = uv[:, c] * res - 0.5
+        ok &= np.abs(p - np.round(p)) > 0.03
+    live = (1 - 2 * v > 0) & ok
+    assert live.sum() > 50 and (ok & ~live).sum() > 50
+    np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
