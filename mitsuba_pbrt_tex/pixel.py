@@ -403,12 +403,15 @@ def filter_context(si, pixels):
 def context(si) -> TextureEvalContext:
     """The context an opting-in texture filters: the pixel's (centred on its screen-weighted
     centroid, partials exact at the pixel centre) for camera hits while ``pbrt_path`` publishes
-    a sensor, else the sample's (``TextureEvalContext.from_si``)."""
+    a sensor with a box film filter, else the sample's (``TextureEvalContext.from_si``). The
+    parallelogram is the box filter's pixel: with a Gaussian film (``current_pixels()``) a
+    texture that has no kernel of the film's filter (:func:`filter_context`) keeps the sample's
+    footprint."""
     ctx = TextureEvalContext.from_si(si)
     sensor = current_sensor()
-    if sensor is None:
+    if sensor is None or current_pixels() is not None:
         return ctx
-    fp = pixel_footprint(sensor, si, current_pixels())
+    fp = pixel_footprint(sensor, si)
     ok = fp.ok
     uv = fp.uv_c - (fp.d0 * fp.g + fp.d1 * fp.h) * (1.0 / 12.0)
     p = fp.p_c - (fp.dp0 * fp.g + fp.dp1 * fp.h) * (1.0 / 12.0)

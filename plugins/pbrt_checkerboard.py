@@ -15,8 +15,10 @@ their weight is non-zero. The closed forms and the fix of pbrt-v3's NaN are desc
 :mod:`mitsuba_pbrt_tex.checker`.
 
 ``area`` opts in to pixel footprints like ``pbrt_imagemap``'s ``box`` filter (see
-:mod:`mitsuba_pbrt_tex.pixel`): under ``pbrt_path`` with ``footprint="pixel"`` a camera hit gets
-the average over its pixel's footprint, the same for every sample of the pixel — exact for a
+:mod:`mitsuba_pbrt_tex.pixel`): under ``pbrt_path`` with ``footprint="pixel"`` and a box film
+filter a camera hit gets the average over its pixel's footprint (with a Gaussian film, the
+sample's footprint: the Gaussian pixel kernel exists for images only), the same for every
+sample of the pixel — exact for a
 checkerboard that enters the shading linearly (albedo, emission), while a roughness or bump
 checkerboard would converge to the shading of the averaged texture. Why not ``box``: pbrt-v3's
 ``box`` (``closedform``) averages over a square of half-width ``max(|d/dx|, |d/dy|)``, about twice

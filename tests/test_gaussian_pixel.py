@@ -105,6 +105,30 @@ def test_camera_hits_decode_to_the_pixel_their_ray_was_drawn_for(rng):
     np.testing.assert_array_equal(pix[ok], c[ok])
 
 
+def test_box_pixel_context_is_for_box_films_only(rng):
+    """``pixel.context`` (the box film's pixel parallelogram, which ``pbrt_checkerboard``
+    ``aamode="area"`` filters) gives camera hits their pixel's partials under a box film, and
+    the sample's own context (here: zero partials, rays without differentials) while a
+    Gaussian film's pixels are published — a box average would be the wrong kernel there."""
+    from mitsuba_pbrt_tex import pixel
+    scene = mi.load_dict(scene_dict(box_texture(rng), rfilter='gaussian'))
+    sensor = scene.sensors()[0]
+    pixels = pixel.FilterPixels(sensor.film(), seed=5)
+    pixels.draw(4)
+    w, h = RES
+    pos = np.stack([rng.uniform(0.3, 0.7, 64), rng.uniform(0.6, 0.9, 64)], 1)
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
+                                            mi.Point2f(0.5), True)
+    si = scene.ray_intersect(mi.Ray3f(ray))
+    assert A(si.is_valid()).mean() > 0.9
+    with pixel.published(sensor):
+        box = pixel.context(si)
+    with pixel.published(sensor, pixels):
+        gaussian = pixel.context(si)
+    assert np.abs(A(box.dudx)).max() > 0
+    assert np.all(A(gaussian.dudx) == 0) and np.all(A(gaussian.dvdy) == 0)
+
+
 # ----------------------------------------------------------------------------- texture kernel
 def bilinear_repeat(img, s, t):
     h, w = img.shape[:2]
