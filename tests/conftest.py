@@ -1,5 +1,6 @@
 """Shared fixtures: the test variant (llvm_ad_rgb), plugin registration, small helpers."""
 
+import contextlib
 import gc
 import os
 
@@ -55,6 +56,22 @@ def A(x):
     if dr.is_array_v(x) and dr.depth_v(x) > 1 and a.ndim == 2:
         a = a.T
     return a
+
+
+@contextlib.contextmanager
+def wavefront_mode(enabled=True):
+    """Within this block, Dr.Jit runs loops and calls in wavefront mode (evaluated, not
+    symbolic) when ``enabled``; the previous flags come back afterwards."""
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    old = [dr.flag(f) for f in flags]
+    try:
+        if enabled:
+            for f in flags:
+                dr.set_flag(f, False)
+        yield
+    finally:
+        for f, v in zip(flags, old):
+            dr.set_flag(f, v)
 
 
 @pytest.fixture

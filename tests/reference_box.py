@@ -33,6 +33,22 @@ def _area(poly):
     return 0.5 * (np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
+def clipped_cells(quad):
+    """(i, j, polygon) for every unit cell [i, i+1] × [j, j+1] that the convex polygon ``quad``
+    overlaps with positive area: the part of ``quad`` inside it (Sutherland–Hodgman)."""
+    lo, hi = np.min(quad, 0), np.max(quad, 0)
+    for j in range(int(np.floor(lo[1])), int(np.floor(hi[1])) + 1):
+        for i in range(int(np.floor(lo[0])), int(np.floor(hi[0])) + 1):
+            poly = quad
+            for axis, bound, above in ((0, i, True), (0, i + 1, False),
+                                       (1, j, True), (1, j + 1, False)):
+                poly = _clip(poly, axis, bound, above)
+                if len(poly) < 3:
+                    break
+            if len(poly) >= 3:
+                yield i, j, poly
+
+
 def box_average(level, s, t, d0, d1, mode):
     """Average over ``(s, t) + a·d0 + b·d1``, ``a, b ∈ [-1/2, 1/2]``, of the bilinear
     reconstruction of ``level`` (H, W, C) with wrap ``mode``; returns (C,)."""
@@ -42,29 +58,19 @@ def box_average(level, s, t, d0, d1, mode):
     e1 = np.array([d1[0] * w, d1[1] * h])
     quad = [c - e0 / 2 - e1 / 2, c + e0 / 2 - e1 / 2, c + e0 / 2 + e1 / 2, c - e0 / 2 + e1 / 2]
     total_area = _area(quad)
-    lo, hi = np.min(quad, 0), np.max(quad, 0)
     acc = np.zeros(level.shape[2])
-    for j in range(int(np.floor(lo[1])), int(np.floor(hi[1])) + 1):
-        for i in range(int(np.floor(lo[0])), int(np.floor(hi[0])) + 1):
-            poly = quad
-            for axis, bound, above in ((0, i, True), (0, i + 1, False),
-                                       (1, j, True), (1, j + 1, False)):
-                poly = _clip(poly, axis, bound, above)
-                if len(poly) < 3:
-                    break
-            if len(poly) < 3:
-                continue
-            corners = [ref.texel(level, np.array([i + bx]), np.array([j + by]), mode)[0]
-                       for by in (0, 1) for bx in (0, 1)]
+    for i, j, poly in clipped_cells(quad):
+        corners = [ref.texel(level, np.array([i + bx]), np.array([j + by]), mode)[0]
+                   for by in (0, 1) for bx in (0, 1)]
 
-            def f(p):
-                fx, fy = p[0] - i, p[1] - j
-                return ((1 - fx) * (1 - fy) * corners[0] + fx * (1 - fy) * corners[1]
-                        + (1 - fx) * fy * corners[2] + fx * fy * corners[3])
+        def f(p):
+            fx, fy = p[0] - i, p[1] - j
+            return ((1 - fx) * (1 - fy) * corners[0] + fx * (1 - fy) * corners[1]
+                    + (1 - fx) * fy * corners[2] + fx * fy * corners[3])
 
-            p0 = poly[0]
-            for k in range(1, len(poly) - 1):
-                p1, p2 = poly[k], poly[k + 1]
-                a = _area([p0, p1, p2])
-                acc += a / 3 * (f((p0 + p1) / 2) + f((p1 + p2) / 2) + f((p2 + p0) / 2))
+        p0 = poly[0]
+        for k in range(1, len(poly) - 1):
+            p1, p2 = poly[k], poly[k + 1]
+            a = _area([p0, p1, p2])
+            acc += a / 3 * (f((p0 + p1) / 2) + f((p1 + p2) / 2) + f((p2 + p0) / 2))
     return acc / total_area

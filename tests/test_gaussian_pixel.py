@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import A
+from conftest import A, wavefront_mode
 from test_pixel_footprint import RES, box_texture, interior_pixels, scene_dict
 
 T = mi.ScalarTransform4f
@@ -219,19 +219,6 @@ def gaussian_interior(scene):
     return er
 
 
-def _with_flags(wavefront, fn):
-    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
-    old = [dr.flag(f) for f in flags]
-    try:
-        if wavefront:
-            for f in flags:
-                dr.set_flag(f, False)
-        return fn()
-    finally:
-        for f, v in zip(flags, old):
-            dr.set_flag(f, v)
-
-
 @pytest.mark.parametrize('mode', ['symbolic', 'symbolic-one-bsdf', 'wavefront'])
 def test_one_spp_interior_pixels_equal_between_seeds(mode, rng):
     """Every sample counts in the pixel its texture lookup centred on, so two 1-spp renders of a
@@ -241,8 +228,8 @@ def test_one_spp_interior_pixels_equal_between_seeds(mode, rng):
     scene = mi.load_dict(scene_dict(tex, rfilter='gaussian',
                                     second_bsdf=mode != 'symbolic-one-bsdf'))
     mask = gaussian_interior(scene)
-    a, b = _with_flags(mode == 'wavefront', lambda: [
-        np.array(mi.render(scene, spp=1, seed=s)) for s in (1, 2)])
+    with wavefront_mode(mode == 'wavefront'):
+        a, b = [np.array(mi.render(scene, spp=1, seed=s)) for s in (1, 2)]
     assert mask.sum() > 60, mask.sum()
     diff = np.abs(a - b)[mask]
     assert diff.max() < 1e-4, diff.max()

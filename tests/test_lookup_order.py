@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import reference_mipmap as ref
-from conftest import A, make_si
+from conftest import A, make_si, wavefront_mode
 from mitsuba_pbrt_tex import ewa as ewa_module
 from mitsuba_pbrt_tex import lookup_order
 
@@ -218,13 +218,7 @@ def test_wavefront_render_sorts_and_matches_megakernel(rng, sorts):
         'light': {'type': 'constant'}})
     megakernel = A(mi.render(scene, seed=1))
     assert sorts == []
-    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
-    try:
-        for f in flags:
-            dr.set_flag(f, False)
+    with wavefront_mode():
         wavefront = A(mi.render(scene, seed=1))
-    finally:
-        for f in flags:
-            dr.set_flag(f, True)
     assert len(sorts) >= 1
     np.testing.assert_array_equal(wavefront, megakernel)

@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import A, adam_steps
+from conftest import A, adam_steps, wavefront_mode
 
 T = mi.ScalarTransform4f
 RES = (24, 16)
@@ -95,17 +95,9 @@ def test_one_spp_interior_pixels_equal_between_seeds(mode, rng):
     rounding of the pixel reconstruction; the sample-centred box differs by ~0.05)."""
     scene = mi.load_dict(scene_dict(box_texture(rng), second_bsdf=mode != 'symbolic-one-bsdf'))
     mask = interior_pixels(scene)
-    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
-    old = [dr.flag(f) for f in flags]
-    try:
-        if mode == 'wavefront':
-            for f in flags:
-                dr.set_flag(f, False)
+    with wavefront_mode(mode == 'wavefront'):
         a = np.array(mi.render(scene, spp=1, seed=1))
         b = np.array(mi.render(scene, spp=1, seed=2))
-    finally:
-        for f, v in zip(flags, old):
-            dr.set_flag(f, v)
     assert mask.sum() > 100
     diff = np.abs(a - b)[mask]
     assert diff.max() < 1e-4, diff.max()
@@ -208,17 +200,9 @@ def test_silhouette_samples_only_in_edge_pixels(wavefront, rng):
     extra = mi.load_dict({**base, 'integrator': {**base['integrator'], 'silhouette_spp': 16}})
     edge = _edge_pixels(plain)
     assert 10 < edge.sum() < edge.size / 3
-    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
-    old = [dr.flag(f) for f in flags]
-    try:
-        if wavefront:
-            for f in flags:
-                dr.set_flag(f, False)
+    with wavefront_mode(wavefront):
         a = np.array(mi.render(plain, spp=1, seed=4))
         b = np.array(mi.render(extra, spp=1, seed=4))
-    finally:
-        for f, v in zip(flags, old):
-            dr.set_flag(f, v)
     np.testing.assert_array_equal(a[~edge], b[~edge])
     ref_scene = mi.load_dict({**scene_dict(dict(tex, filter='bilinear'), footprint='sample'),
                               'integrator': {'type': 'pbrt_path', 'max_depth': 2,

@@ -276,23 +276,13 @@ def test_checkerboard_non_finite_coordinates_and_widths_count_as_zero():
 
 def checker_area_reference(c, d0, d1):
     """Weight of tex2 averaged over the parallelogram c + a·d0 + b·d1 (a, b ∈ [-1/2, 1/2]) by
-    clipping it against every unit cell it touches (float64 polygons, reference_box's clipper):
+    clipping it against every unit cell it touches (float64 polygons, reference_box's cell clipper):
     Σ cells sign·area / total area. Shares nothing with the package's Green's-theorem loop."""
-    from reference_box import _area, _clip
+    from reference_box import _area, clipped_cells
     c, d0, d1 = (np.asarray(v, np.float64) for v in (c, d0, d1))
     quad = [c - d0 / 2 - d1 / 2, c + d0 / 2 - d1 / 2, c + d0 / 2 + d1 / 2, c - d0 / 2 + d1 / 2]
-    lo, hi = np.min(quad, 0), np.max(quad, 0)
-    acc = 0.0
-    for j in range(int(np.floor(lo[1])), int(np.floor(hi[1])) + 1):
-        for i in range(int(np.floor(lo[0])), int(np.floor(hi[0])) + 1):
-            poly = quad
-            for axis, bound, above in ((0, i, True), (0, i + 1, False),
-                                       (1, j, True), (1, j + 1, False)):
-                poly = _clip(poly, axis, bound, above)
-                if len(poly) < 3:
-                    break
-            if len(poly) >= 3:
-                acc += (1 if (i + j) % 2 == 0 else -1) * abs(_area(poly))
+    acc = sum((1 if (i + j) % 2 == 0 else -1) * abs(_area(poly))
+              for i, j, poly in clipped_cells(quad))
     return 0.5 - 0.5 * acc / abs(_area(quad))
 
 
