@@ -6,7 +6,6 @@ integration of the bilinear texture; 1-spp renders equal between seeds on interi
 Gaussian-weighted reference (Mitsuba's ``path`` + ``bitmap`` with the Gaussian film); errors;
 texel gradients against finite differences."""
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
