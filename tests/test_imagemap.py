@@ -1040,3 +1040,33 @@ def test_eval_1_grad_with_invert_matches_finite_differences(rng):
     live = (1 - 2 * v > 0) & ok
     assert live.sum() > 50 and (ok & ~live).sum() > 50
     np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
+
+
+def test_level_offsets_of_large_pyramids():
+    """The per-lane level view's texel offsets (a closed form for square power-of-two images
+    below 2³² texels·4, selects otherwise) equal the running sum of the level sizes, for sizes
+    up to 65536 × 32768 (offsets near 2³², the most a UInt32 texel index can address) — checked
+    on the view alone (no buffer is allocated)."""
+    from mitsuba_pbrt_tex.mipmap import LevelView, MIPMap, Pyramid, level_sizes
+    for w, h in ((1, 1), (2, 2), (5, 5), (64, 64), (4096, 4096), (16384, 16384), (32768, 32768),
+                 (65536, 32768), (300, 7)):
+        sizes = level_sizes(w, h)
+        pyr = Pyramid(None, w, h, 3, sizes)
+        want = np.cumsum([0] + [a * b for a, b in sizes[:-1]])
+        assert pyr.offsets == list(want)
+        if len(sizes) == 1:
+            continue
+        view = LevelView(MIPMap(pyr, 'repeat'), mi.UInt32(np.arange(len(sizes))))
+        np.testing.assert_array_equal(np.array(view.off, dtype=np.int64), want)
+
+
+def test_overflowing_footprints_are_point_lookups(rng):
+    """A mapping scale that overflows the (finite, clamped) partials to inf gives a footprint
+    width that is not finite: it counts as 0 (the finest level), as non-finite partials do."""
+    img = rng.random((16, 16, 3))
+    tex = imagemap(img, filter='bilinear', uscale=1e31, vscale=1e31)
+    tex.prepare_differentials()
+    uv = rng.uniform(0, 1e-30, (20, 2))
+    d = np.full((20, 2), 1e8)
+    np.testing.assert_array_equal(A(tex.eval(make_si(uv, d * [1, 0], d * [0, 1]))),
+                                  A(tex.eval(make_si(uv))))
