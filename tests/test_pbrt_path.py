@@ -372,3 +372,19 @@ def test_renders_as_mitsuba_prb_with_the_same_parameters(params):
                                  spp=16, seed=3))
               for kind in ('prb', 'pbrt_path')]
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
+
+
+def test_spp_scale_as_an_integer_is_a_number():
+    """``spp_scale`` is a string or a number (parameter table): an integer such as 2 is the
+    number 2, so the uv partials it gives equal those of the float 2.0 exactly (same seed, same
+    rays) and differ from those of 1.0."""
+    def partials(scale):
+        scene = mi.load_dict({
+            'type': 'scene', 'sensor': camera([0, 2, 4], [0, 0, 0], 16, 16),
+            'integrator': {'type': 'pbrt_path', 'aovs': 'duv_dx,duv_dy', 'spp_scale': scale},
+            'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(5),
+                      'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'pbrt_checkerboard'}}}})
+        return np.array(mi.render(scene, spp=4, seed=2))[..., 3:7]
+    two = partials(2)
+    np.testing.assert_array_equal(two, partials(2.0))
+    assert np.abs(two - partials(1.0)).max() > 1e-3
