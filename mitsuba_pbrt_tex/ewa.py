@@ -163,7 +163,7 @@ class EWAFilter:
         # the anisotropy clamp and the level choice the axes are at most 2 and
         # 2·maxanisotropy texels long, the half-width at most their length + 1. (A bound of
         # twice the image size cut the ellipses of images a few texels wide, where the level
-        # cannot grow with the footprint: 6% off pbrt's EWA at 5×4 texels, maxanisotropy 32.)
+        # cannot grow with the footprint: up to 0.06 off pbrt's EWA for texels in [0, 1].)
         limit = 2.0 * max(mip.width, mip.height, 4.0 * self.max_anisotropy) + 2
         u_ext = dr.minimum(_finite(u_ext), limit)
         v_ext = dr.minimum(_finite(v_ext), limit)

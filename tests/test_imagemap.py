@@ -937,8 +937,9 @@ def test_ewa_matches_pbrt_literal_on_images_a_few_texels_wide(shape, wrap, max_a
     """On an image a few texels wide the level cannot grow with the footprint: a minor axis of
     0.3–1 texel at the largest anisotropy gives ellipses up to 32 texels long at level 0, many
     times the image, and pbrt sums all of their taps (numpy transcription). A cap on the loop's
-    extents once cut them (up to 6% off). 1e-4: float32 accumulation over up to ~10³ taps
-    (n·6e-8 relative); bucket-edge lookups excluded as in test_ewa_matches_pbrt_literal."""
+    extents once cut them (up to 0.06 off for texels in [0, 1]). 1e-4: float32 accumulation
+    over up to ~10³ taps (n·6e-8 relative); bucket-edge lookups excluded as in
+    test_ewa_matches_pbrt_literal."""
     img = rng.random(shape + (1,))
     n = 200
     uv = rng.uniform(0, 1, (n, 2))
