@@ -35,10 +35,13 @@ def _mod(x, n, inv_n=None):
 
 
 def wrap_1d(x, n, mode: str, inv_n=None):
-    """Wrap float-valued integer ``x`` into ``[0, n)`` (not for black/octahedral)."""
+    """Wrap float-valued integer ``x`` into ``[0, n)`` for the modes that wrap each axis on its
+    own: ``repeat``, ``clamp``, ``mirror``. ``black`` (which also needs a validity mask) and
+    ``octahedralsphere`` (which couples the axes) are handled by every caller before it, and
+    refused here."""
     if mode == 'repeat':
         return _mod(x, n, inv_n)
-    if mode == 'clamp' or mode == 'black':
+    if mode == 'clamp':
         return dr.clip(x, 0, n - 1)
     if mode == 'mirror':
         m = _mod(x, 2 * n, None if inv_n is None else 0.5 * inv_n)

@@ -8,6 +8,14 @@
 # ($MUTATE_DIR, default /tmp/mutate-<module>) so that editing the tree while it runs is safe; one
 # worker, nice 15. Results: `cd $MUTATE_DIR && ../path/.venv/bin/mutmut results` (the script
 # prints the summary at the end).
+# A plugin (plugins/NAME.py) is imported as mitsuba_pbrt_tex.plugins.NAME (pyproject's
+# package-dir), while mutmut names a mutant after its file's path: the scratch copy therefore
+# holds the plugins inside the package too, and the mutated file is
+# mitsuba_pbrt_tex/plugins/NAME.py (else no mutant would ever be switched on).
+# A mutant is stopped as a timeout after (its tests' duration in the stats run +
+# MUTATE_TIMEOUT_CONSTANT, default 60) × MUTATE_TIMEOUT_MULTIPLIER (default 4) seconds of wall
+# time, counted from the mutant's fork (so the constant must cover importing Mitsuba and
+# compiling the mutated kernels).
 # Dr.Jit's thread pool does not survive fork(): mutmut forks its workers from a fork server that
 # imports nothing (forkserver_warmup = none), so each mutant imports mitsuba afresh.
 set -euo pipefail
@@ -19,10 +27,16 @@ rm -rf "$DIR"; mkdir -p "$DIR"
 cd "$ROOT"
 git ls-files -co --exclude-standard | grep -v '^tests/mutate.sh$' | tar -cf - -T - | tar -xf - -C "$DIR"
 cd "$DIR"
+MUTATE="$MODULE"
+case "$MODULE" in
+  plugins/*.py)
+    cp -r plugins mitsuba_pbrt_tex/plugins
+    MUTATE="mitsuba_pbrt_tex/$MODULE" ;;
+esac
 {
   echo "[mutmut]"
   echo "source_paths = mitsuba_pbrt_tex"
-  echo "only_mutate = $MODULE"
+  echo "only_mutate = $MUTATE"
   echo "process_isolation = forkserver"
   echo "forkserver_warmup = none"
   # not mutated (not scored): error-message text and descriptions, whose tests are the
@@ -34,8 +48,8 @@ cd "$DIR"
     printf 'do_not_mutate_patterns =\n    ^\\s*raise\\b\n    def describe\\(\n    def to_string\\(\n'
     for pat in ${MUTATE_SKIP:-}; do echo "    $pat"; done
   fi
-  echo "timeout_multiplier = 4.0"
-  echo "timeout_constant = 60.0"
+  echo "timeout_multiplier = ${MUTATE_TIMEOUT_MULTIPLIER:-4.0}"
+  echo "timeout_constant = ${MUTATE_TIMEOUT_CONSTANT:-60.0}"
   printf 'pytest_add_cli_args =\n    -q\n    -p\n    no:cacheprovider\n' 
   echo "pytest_add_cli_args_test_selection ="
   for t in "$@"; do echo "    $t"; done

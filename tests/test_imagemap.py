@@ -1070,3 +1070,52 @@ def test_overflowing_footprints_are_point_lookups(rng):
     d = np.full((20, 2), 1e8)
     np.testing.assert_array_equal(A(tex.eval(make_si(uv, d * [1, 0], d * [0, 1]))),
                                   A(tex.eval(make_si(uv))))
+
+
+def test_ewa_non_finite_derivatives_count_as_zero(rng):
+    """The EWA filter reads a NaN or infinite derivative component as 0 (``ewa.py``,
+    ``EWAFilter.axes``). The plugin's differentials are already finite (``differentials.py``),
+    so such values reach the filter only through a mapping that overflows them; the filter is
+    called directly here. The lookup equals pbrt's EWA (numpy transcription) of the footprint
+    with those components zeroed — a zero footprint is a level-0 bilinear lookup, one finite
+    axis keeps its own level. Tolerance 2e-5 and bucket-edge lookups excluded as in
+    test_ewa_matches_pbrt_literal."""
+    from mitsuba_pbrt_tex.ewa import EWAFilter
+    from mitsuba_pbrt_tex.mipmap import MIPMap
+    img = rng.random((32, 48, 3))
+    n = 120
+    uv = rng.uniform(0, 1, (n, 2))
+    nan, inf = float('nan'), float('inf')
+    d0 = np.tile(np.array([[inf, 0.0], [nan, 3.0 / 48], [-inf, nan], [6.0 / 48, inf]]), (n // 4, 1))
+    d1 = np.tile(np.array([[0.0, nan], [1.5 / 48, -inf], [nan, 0.0], [inf, 2.5 / 48]]), (n // 4, 1))
+    mip = MIPMap(build_pyramid(mi.TensorXf(img.astype(np.float32))), 'repeat')
+    vec = lambda d: mi.Vector2f(d[:, 0], d[:, 1])
+    got = A(EWAFilter(8.0)(mip, mi.Point2f(uv[:, 0], uv[:, 1]), vec(d0), vec(d1), mi.Bool(True)))
+    zeroed = [np.where(np.isfinite(d), d, 0.0) for d in (d0, d1)]
+    want, ambiguous = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], *zeroed, 8.0, 'repeat')
+    assert ambiguous.mean() < 0.25
+    np.testing.assert_allclose(got[~ambiguous], want[~ambiguous], atol=2e-5)
+
+
+@pytest.mark.parametrize('shape', [(1, 1), (2, 2), (3, 2), (5, 4)])
+@pytest.mark.parametrize('wrap', ['black', 'repeat'])
+@pytest.mark.parametrize('max_aniso', [8.0, 32.0])
+def test_ewa_matches_pbrt_literal_on_images_a_few_texels_wide(shape, wrap, max_aniso, rng):
+    """On an image a few texels wide the level cannot grow with the footprint: a minor axis of
+    0.3–1 texel at the largest anisotropy gives ellipses up to 32 texels long at level 0, many
+    times the image, and pbrt sums all of their taps (numpy transcription). A cap on the loop's
+    extents once cut them (up to 0.06 off for texels in [0, 1]). 1e-4: float32 accumulation
+    over up to ~10³ taps (n·6e-8 relative); bucket-edge lookups excluded as in
+    test_ewa_matches_pbrt_literal."""
+    img = rng.random(shape + (1,))
+    n = 200
+    uv = rng.uniform(0, 1, (n, 2))
+    minor = rng.uniform(0.3, 1.0, n) / max(shape)
+    ang = rng.uniform(0, math.pi, n)
+    d0 = np.stack([np.cos(ang), np.sin(ang)], 1) * (minor * max_aniso)[:, None]
+    d1 = np.stack([-np.sin(ang), np.cos(ang)], 1) * minor[:, None]
+    tex = imagemap(img, filter='ewa', wrap=wrap, maxanisotropy=max_aniso)
+    got = A(tex.eval_1(make_si(uv, d0, d1)))
+    want, ambiguous = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], d0, d1, max_aniso, wrap)
+    assert ambiguous.mean() < 0.25
+    np.testing.assert_allclose(got[~ambiguous], want[~ambiguous, 0], atol=1e-4)

@@ -204,6 +204,9 @@ def test_silhouette_samples_only_in_edge_pixels(wavefront, rng):
         a = np.array(mi.render(plain, spp=1, seed=4))
         b = np.array(mi.render(extra, spp=1, seed=4))
     np.testing.assert_array_equal(a[~edge], b[~edge])
+    # and every edge pixel gets them: 16 more paths through other points of a pixel that
+    # crosses a silhouette change its value (the 5 rays of _edge_pixels find the same pixels)
+    assert np.all((a != b).any(-1)[edge])
     ref_scene = mi.load_dict({**scene_dict(dict(tex, filter='bilinear'), footprint='sample'),
                               'integrator': {'type': 'pbrt_path', 'max_depth': 2,
                                              'texture_differentials': False}})
@@ -262,3 +265,43 @@ def test_hard_cases_camera_in_or_near_the_plane_stay_finite(height, rng):
     img = np.array(mi.render(mi.load_dict(d), spp=1, seed=1))
     assert np.isfinite(img).all()
     assert img.min() >= 0 and img.max() <= 3 / np.pi + 1e-4
+
+
+def test_silhouette_samples_follow_the_render_seed(rng):
+    """The extra paths of edge pixels draw from a sampler seeded from the render's: renders with
+    two seeds give different extra paths. Their sum is recovered per pixel from the two images
+    of a seed, with and without silhouette_spp (L = (L_sample + Σ extra) / 17); the sums of the
+    two seeds differ by far more than float32 rounding of that recovery (~1e-5) in most edge
+    pixels (the same seed inside would give equal sums)."""
+    tex = box_texture(rng, size=16, tiles=2.0)
+    base = scene_dict(tex)
+    plain = mi.load_dict(base)
+    extra = mi.load_dict({**base, 'integrator': {**base['integrator'], 'silhouette_spp': 16}})
+    edge = _edge_pixels(plain)
+    sums = []
+    for seed in (4, 5):
+        a = np.array(mi.render(plain, spp=1, seed=seed))
+        b = np.array(mi.render(extra, spp=1, seed=seed))
+        sums.append(17 * b[edge] - a[edge])
+    differ = (np.abs(sums[0] - sums[1]) > 1e-3).any(-1)
+    assert differ.mean() > 0.5, differ.mean()
+
+
+def test_silhouette_spp_has_no_effect_with_the_sample_footprint(rng):
+    """silhouette_spp belongs to footprint="pixel" (parameter table): with the sample footprint
+    it changes nothing — the same image bit for bit (same seed), and gradient renders, which
+    refuse it with the pixel footprint, run."""
+    tex = box_texture(rng, size=8)
+    d = scene_dict(tex, footprint='sample')
+    with_extra = mi.load_dict({**d, 'integrator': {**d['integrator'], 'silhouette_spp': 4}})
+    plain = mi.load_dict(d)
+    np.testing.assert_array_equal(np.array(mi.render(with_extra, spp=1, seed=3)),
+                                  np.array(mi.render(plain, spp=1, seed=3)))
+    d = scene_dict(box_texture(rng, size=8), footprint='sample')       # texels of its own
+    scene = mi.load_dict({**d, 'integrator': {**d['integrator'], 'silhouette_spp': 4}})
+    params = mi.traverse(scene)
+    dr.enable_grad(params['plane.bsdf.reflectance.data'])
+    params.update()
+    img = mi.render(scene, params, spp=1, seed=1, seed_grad=2)
+    dr.backward(dr.sum(img, axis=None))
+    assert np.abs(np.array(dr.grad(params['plane.bsdf.reflectance.data']))).sum() > 0

@@ -161,3 +161,13 @@ def test_non_finite_coordinates_read_texel_zero(wrap, rng):
     got = A(tex.eval(make_si([[nan, 0.5], [inf, 0.3], [0.5, -inf], [-inf, nan]])))
     want = np.stack([img[2, 0], img[1, 0], img[0, 3], img[0, 0]])
     np.testing.assert_array_equal(got.astype(np.float32), want.astype(np.float32))
+
+
+@pytest.mark.parametrize('mode', ['black', 'octahedralsphere'])
+def test_wrap_1d_refuses_modes_that_do_not_wrap_one_axis_alone(mode):
+    """``wrap_1d`` is for the modes that wrap each axis on its own (repeat, clamp, mirror):
+    ``black`` needs a validity mask and ``octahedralsphere`` couples the axes, so every caller
+    (``wrap_2d``, ``adjacent_wrapped``, the box filter's tables) handles them before calling it,
+    and ``wrap_1d`` refuses them instead of returning an index without its mask."""
+    with pytest.raises(ValueError):
+        wrap_1d(mi.Float([-1.0, 2.0, 5.0]), 4, mode)
