@@ -106,3 +106,46 @@ def adam_steps(load_scene, key, steps, frozen, spp=4):
         history.append((float(np.array(loss).ravel()[0]), np.array(dr.grad(opt[key]))))
         opt.step()
     return history, (fn.n_recordings if frozen else None)
+
+
+def assert_frozen_steps_equal_unfrozen(load_scene, key, steps, spp=4):
+    """``adam_steps`` frozen and not: calls were replayed (not all recorded), every step's
+    texel gradient is non-zero, and losses and gradients are equal up to float32 rounding of
+    the replayed kernels (1e-5 relative, 1e-7 absolute)."""
+    plain, _ = adam_steps(load_scene, key, steps, False, spp=spp)
+    frozen, recordings = adam_steps(load_scene, key, steps, True, spp=spp)
+    assert recordings < len(frozen)
+    for (loss_p, grad_p), (loss_f, grad_f) in zip(plain, frozen):
+        assert np.abs(grad_p).sum() > 0
+        assert loss_f == pytest.approx(loss_p, rel=1e-5)
+        np.testing.assert_allclose(grad_f, grad_p, rtol=1e-5, atol=1e-7)
+
+
+def assert_texel_gradients_match_fd(tex, img, si, w, rng):
+    """``dr.backward`` of ``loss = Σ w·tex.eval_1(si)`` through the ``data`` parameter (set
+    from ``img`` with gradients enabled, then ``params.update()``) against central differences
+    of the loss (step 1 in one texel) for the 6 largest gradients and one random texel. The
+    loss is linear in the texels, so the differences are exact up to float32 rounding: rtol
+    1e-3, atol 1e-4."""
+    params = mi.traverse(tex)
+    data = mi.TensorXf(img)
+    dr.enable_grad(data)
+    params['data'] = data
+    params.update()
+    loss = dr.sum(w * tex.eval_1(si))
+    dr.backward(loss)
+    grad = np.array(dr.grad(params['data']))
+    assert np.abs(grad).sum() > 0
+
+    def loss_at(arr):
+        params['data'] = mi.TensorXf(arr)
+        params.update()
+        return float(dr.sum(w * tex.eval_1(si))[0])
+
+    flat = np.argsort(-np.abs(grad).ravel())[:6].tolist() + [int(rng.integers(grad.size))]
+    for k in flat:
+        e = np.zeros(img.size, np.float32)
+        e[k] = 1.0
+        e = e.reshape(img.shape)
+        fd = (loss_at(img + e) - loss_at(img - e)) / 2
+        assert grad.ravel()[k] == pytest.approx(fd, rel=1e-3, abs=1e-4)

@@ -19,7 +19,7 @@ import pytest
 
 import reference_box as rbox
 import reference_mipmap as ref
-from conftest import A, make_si
+from conftest import A, assert_texel_gradients_match_fd, make_si
 
 MAX_BANDS = 16         # documented in mitsuba_pbrt_tex.box: the level rule the test re-derives
 WRAPS = ['repeat', 'mirror', 'clamp', 'black']
@@ -193,28 +193,7 @@ def test_backward_reaches_texels_and_matches_finite_differences(rng):
     d0, d1 = footprints(rng, n, major, rng.choice([1.0, 8.0], n), 12)
     si = make_si(uv, d0, d1)
     w = mi.Float(rng.random(n))
-    params = mi.traverse(tex)
-    data = mi.TensorXf(img)
-    dr.enable_grad(data)
-    params['data'] = data
-    params.update()
-    loss = dr.sum(w * tex.eval_1(si))
-    dr.backward(loss)
-    grad = np.array(dr.grad(params['data']))
-    assert np.abs(grad).sum() > 0
-
-    def loss_at(arr):
-        params['data'] = mi.TensorXf(arr)
-        params.update()
-        return float(dr.sum(w * tex.eval_1(si))[0])
-
-    flat = np.argsort(-np.abs(grad).ravel())[:6].tolist() + [int(rng.integers(grad.size))]
-    for k in flat:
-        e = np.zeros(img.size, np.float32)
-        e[k] = 1.0
-        e = e.reshape(img.shape)
-        fd = (loss_at(img + e) - loss_at(img - e)) / 2
-        assert grad.ravel()[k] == pytest.approx(fd, rel=1e-3, abs=1e-4)
+    assert_texel_gradients_match_fd(tex, img, si, w, rng)
 
 
 def test_render_gradient_through_box_under_pbrt_path(rng):

@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import adam_steps
+from conftest import assert_frozen_steps_equal_unfrozen
 
 T = mi.ScalarTransform4f
 RES = 16
@@ -187,14 +187,6 @@ def test_frozen_optimisation_steps_equal_unfrozen_ones(filt):
     frozen and not: the losses and texel gradients are equal (the replay runs the recorded
     kernels on the new inputs: float32 rounding, 1e-5), and calls were replayed, not all
     recorded (Dr.Jit records such a step up to 3 times here, as for bitmap + prb)."""
-    def run(frozen):
-        return adam_steps(lambda: textured_scene('pbrt_path', filt, np.random.default_rng(3),
-                                                 size=16), DATA_KEY, 6, frozen)
-
-    plain, _ = run(False)
-    frozen, recordings = run(True)
-    assert recordings < len(frozen)
-    for (loss_p, grad_p), (loss_f, grad_f) in zip(plain, frozen):
-        assert np.abs(grad_p).sum() > 0
-        assert loss_f == pytest.approx(loss_p, rel=1e-5)
-        np.testing.assert_allclose(grad_f, grad_p, rtol=1e-5, atol=1e-7)
+    assert_frozen_steps_equal_unfrozen(
+        lambda: textured_scene('pbrt_path', filt, np.random.default_rng(3), size=16),
+        DATA_KEY, 6)
