@@ -241,7 +241,7 @@ def test_checkerboard_box_wide_footprint_is_half_and_none_is_parity(rng):
 def test_checkerboard_zero_differentials_are_point_samples(rng):
     uv = f32(rng.uniform(-10, 10, (500, 2)))
     even = (np.floor(uv[:, 0]) + np.floor(uv[:, 1])) % 2 == 0
-    for aamode in ('none', 'box', 'triangle'):
+    for aamode in ('none', 'box', 'triangle', 'area'):
         tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode})
         np.testing.assert_allclose(A(tex.eval_1(make_si(uv))), np.where(even, 1.0, 0.0))
 
@@ -269,7 +269,7 @@ def test_checkerboard_non_finite_coordinates_and_widths_count_as_zero():
     nan, inf = float('nan'), float('inf')
     uv = np.array([[nan, 0.5], [0.5, inf], [-inf, nan], [0.5, 0.5]])
     d = np.array([[0, 0], [0, 0], [0, 0], [nan, nan]])
-    for aamode in ('none', 'box', 'triangle'):
+    for aamode in ('none', 'box', 'triangle', 'area'):
         tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': aamode})
         np.testing.assert_array_equal(A(tex.eval_1(make_si(uv, d, d))), 1.0)
 
