@@ -71,6 +71,12 @@ where differentials need it:
   lobe (read from the BSDFs' flags at each render); elsewhere only camera hits use it;
 * the previous hit is kept as an ``Interaction3f`` (``prb``: a whole ``SurfaceInteraction3f``,
   of which the next bounce reads the same fields: a smaller loop state to trace);
+* the loop state is only what changes from bounce to bounce: the loop's read-only inputs are
+  excluded from it and optional state (the propagated differential, AOVs, the Gaussian film's
+  pixel, ``δL``) is ``None`` where it would stay constant (``prb`` carries ``δL`` and its inputs
+  in primal renders too, so Dr.Jit records its loop twice to remove them), and primal renders
+  record the loop once (``OptimizeLoops`` off in :meth:`sample`) — tracing the loop in Python
+  is a large part of a render's cost at Mitsuba's usual sizes;
 * the camera ray's differential is scaled by ``spp_scale`` (``prb`` discards it), the sensor is
   remembered in ``sample_rays`` for the camera approximation, and the scene's textures are asked
   (``prepare_differentials``) at each render;
@@ -269,32 +275,38 @@ class Plugin:
         """See ``ADIntegrator.sample()``: :meth:`trace`, with the sensor published to opting-in
         textures for ``footprint="pixel"``, and extra samples in silhouette pixels
         (``silhouette_spp``)."""
-        sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
-        prep = self.prepare_trace(scene, sampler, sensor)
-        published = self.pixel_sensor(sensor) if prep[0] else None
-        extra = self.silhouette_spp if published is not None else 0
-        if extra and mode != dr.ADMode.Primal:
-            raise PluginError(f'{self.NAME}: parameter "silhouette_spp": value {extra} is for '
-                              f'primal renders; differentiable renders need 0')
-        if published is None:
-            return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
-        pixels = getattr(self, '_pixels', None)
-        if pixels is None and sensor.film().rfilter().class_name() != 'BoxFilter':
-            # a Gaussian film, but the rays are not ours (sample() called without render()):
-            # the textures keep the sample's footprint
-            return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
-        with pixel.published(published, pixels):
-            out = self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep,
-                             pixels=pixels)
-            if pixels is not None:
-                self.count_in_decoded_pixel(pixels)
-            if extra:
-                L, valid, aovs, state = out
-                edge = self.silhouette_pixels(scene, sensor, mi.Bool(active))
-                acc = self.silhouette_paths(scene, sensor, sampler, edge, prep)
-                L = dr.select(edge, (L + acc) * (1.0 / (extra + 1)), L)
-                out = (L, valid, aovs, L)
-            return out
+        # Primal renders record trace()'s loop once: its loop state holds nothing constant but
+        # the rays' time (see trace()), so OptimizeLoops' second recording, which would remove
+        # such state, costs more tracing than it saves. Differentiable renders keep it (its
+        # literal propagation prunes derivative code).
+        optimize = dr.flag(dr.JitFlag.OptimizeLoops) and mode != dr.ADMode.Primal
+        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, optimize):
+            sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
+            prep = self.prepare_trace(scene, sampler, sensor)
+            published = self.pixel_sensor(sensor) if prep[0] else None
+            extra = self.silhouette_spp if published is not None else 0
+            if extra and mode != dr.ADMode.Primal:
+                raise PluginError(f'{self.NAME}: parameter "silhouette_spp": value {extra} is for '
+                                  f'primal renders; differentiable renders need 0')
+            if published is None:
+                return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
+            pixels = getattr(self, '_pixels', None)
+            if pixels is None and sensor.film().rfilter().class_name() != 'BoxFilter':
+                # a Gaussian film, but the rays are not ours (sample() called without render()):
+                # the textures keep the sample's footprint
+                return self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep)
+            with pixel.published(published, pixels):
+                out = self.trace(mode, scene, sampler, ray, δL, state_in, active, prep=prep,
+                                 pixels=pixels)
+                if pixels is not None:
+                    self.count_in_decoded_pixel(pixels)
+                if extra:
+                    L, valid, aovs, state = out
+                    edge = self.silhouette_pixels(scene, sensor, mi.Bool(active))
+                    acc = self.silhouette_paths(scene, sensor, sampler, edge, prep)
+                    L = dr.select(edge, (L + acc) * (1.0 / (extra + 1)), L)
+                    out = (L, valid, aovs, L)
+                return out
 
     def count_in_decoded_pixel(self, pixels):
         """Gaussian film: count each camera hit in the pixel its film position decodes to —
@@ -397,18 +409,27 @@ class Plugin:
 
         # ---- differentials: the camera ray's, scaled for the sample count --------------------
         if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
-            diff = RayDiff.of_camera_ray(ray, scale)
+            camera_diff = RayDiff.of_camera_ray(ray, scale)
         else:
-            diff = RayDiff()
-        first_duv_dx, first_duv_dy = mi.Vector2f(0), mi.Vector2f(0)
+            camera_diff = RayDiff()
         sensor = getattr(self, '_sensor', None) or scene.sensors()[0]
-        decoded, decoded_ok = mi.Point2f(0), mi.Bool(False)
 
         # ---- loop state (as prb) -------------------------------------------------------------
+        # Only what changes from bounce to bounce is loop state: the loop's inputs that it only
+        # reads are excluded below, and the optional state is None where it would stay constant
+        # (the ray differential where no specular lobe propagates it, the AOVs, the Gaussian
+        # film's pixel, δL in primal renders). With no constant loop state, Dr.Jit traces the
+        # loop body once instead of twice (OptimizeLoops re-records a loop to remove constants):
+        # that tracing, in Python at every render, is a tenth of a 256² × 16 spp render.
+        diff = camera_diff if specular_scene else None
+        first_duv_dx = mi.Vector2f(0) if self.aov_list else None
+        first_duv_dy = mi.Vector2f(0) if self.aov_list else None
+        decoded = mi.Point2f(0) if pixels is not None else None
+        decoded_ok = mi.Bool(False) if pixels is not None else None
         ray = mi.Ray3f(dr.detach(ray))
         depth = mi.UInt32(0)
         L = mi.Spectrum(0 if primal else state_in)
-        δL = mi.Spectrum(δL if δL is not None else 0)
+        δL = None if primal else mi.Spectrum(δL if δL is not None else 0)
         β = mi.Spectrum(1)
         η = mi.Float(1)
         active = mi.Bool(active)
@@ -425,19 +446,23 @@ class Plugin:
             pi_after = self.skip_area_emitters(scene, si_skip.spawn_ray(ray.d), True, skip)
             pi[skip] = pi_after
 
-        while dr.hint(active, max_iterations=self.max_depth, label=f'pbrt_path ({mode.name})'):
+        while dr.hint(active, max_iterations=self.max_depth, label=f'pbrt_path ({mode.name})',
+                      exclude=[scene, self, sensor, mode, primal, bsdf_ctx, mis_weight,
+                               solid_angle_to_area_jacobian, want, scale, camera,
+                               specular_scene, pixels, camera_diff]):
             active_next = mi.Bool(active)
 
             # ---- the hit, with derivative tracking in the differential phases --------------
             with dr.resume_grad(when=not primal):
                 si = pi.compute_surface_interaction(ray, ray_flags=mi.RayFlags.All)
-                if (not primal) & mi.Bool(depth >= 1):
-                    si_prev_diff = pi_prev.compute_surface_interaction(
-                        ray_prev, ray_flags=mi.RayFlags.Minimal)
-                    si_prev = dr.replace_grad(si_prev, _interaction(si_prev_diff))
-                    si_detached = dr.detach(si)
-                    wi_global = dr.normalize(si_prev.p - si_detached.p)
-                    si.wi = dr.replace_grad(si.wi, si_detached.to_local(wi_global))
+                if dr.hint(not primal, mode='scalar'):
+                    if depth >= 1:
+                        si_prev_diff = pi_prev.compute_surface_interaction(
+                            ray_prev, ray_flags=mi.RayFlags.Minimal)
+                        si_prev = dr.replace_grad(si_prev, _interaction(si_prev_diff))
+                        si_detached = dr.detach(si)
+                        wi_global = dr.normalize(si_prev.p - si_detached.p)
+                        si.wi = dr.replace_grad(si.wi, si_detached.to_local(wi_global))
 
             # ---- Gaussian film: the pixel a camera hit counts in (as the textures find it) --
             if dr.hint(pixels is not None, mode='scalar'):
@@ -457,11 +482,14 @@ class Plugin:
                 p_hit, n_hit = dr.detach(si.p), dr.detach(si.n)
                 # each source as a symbolic conditional: a packet of lanes none of which needs
                 # it skips it (camera rays have a differential; diffuse bounces do not)
-                use = valid & diff.valid
-                if dr.hint(not specular_scene, mode='scalar'):
-                    use &= depth == 0       # no specular lobe: only camera rays have one
+                if dr.hint(specular_scene, mode='scalar'):
+                    ray_diff = diff
+                    use = valid & diff.valid
+                else:
+                    ray_diff = camera_diff  # no specular lobe: only camera rays have one
+                    use = valid & camera_diff.valid & (depth == 0)
                 dpdx, dpdy, ok = dr.if_stmt(
-                    args=(p_hit, n_hit, use), cond=use, true_fn=diff.footprint,
+                    args=(p_hit, n_hit, use), cond=use, true_fn=ray_diff.footprint,
                     false_fn=lambda p, n, m: (mi.Vector3f(0), mi.Vector3f(0), mi.Bool(False)),
                     label='pbrt_path: differential')
                 use = valid & ~ok
