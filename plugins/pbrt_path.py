@@ -427,6 +427,9 @@ class Plugin:
         decoded = mi.Point2f(0) if pixels is not None else None
         decoded_ok = mi.Bool(False) if pixels is not None else None
         ray = mi.Ray3f(dr.detach(ray))
+        # the camera rays' time is often one value: as wide as the loop, it is not state narrower
+        # than the loop, which Dr.Jit removes by recording the loop again
+        ray.time = ray.time + dr.zeros(mi.Float, dr.width(ray))
         depth = mi.UInt32(0)
         L = mi.Spectrum(0 if primal else state_in)
         δL = None if primal else mi.Spectrum(δL if δL is not None else 0)

@@ -388,3 +388,52 @@ def test_spp_scale_as_an_integer_is_a_number():
     two = partials(2)
     np.testing.assert_array_equal(two, partials(2.0))
     assert np.abs(two - partials(1.0)).max() > 1e-3
+
+
+@pytest.mark.parametrize('case', ['diffuse', 'mirror', 'aovs', 'no differentials'])
+def test_primal_renders_record_the_path_loop_once(case, monkeypatch):
+    """Tracing the path loop in Python is a large share of a render's cost (``bench
+    integrator``), and Dr.Jit records a loop a second time when its state holds something
+    constant (the module docstring). A primal render must therefore call the loop body once —
+    with a texture that reads differentials, with a mirror that propagates them, with AOVs, and
+    without differentials; a variable added to the loop state that never changes (or a rays'
+    time left one value wide) makes it twice. Differentiable renders may record twice (they keep
+    Dr.Jit's loop optimisation), so only the primal pass is counted. The image is checked
+    against Mitsuba's ``prb`` as well: equal where no texture reads differentials, and finite."""
+    calls = []
+    real_loop = dr.while_loop
+
+    def counting_loop(state, cond, body, *args, **kwargs):
+        label = kwargs.get('label') or ''
+        if not label.startswith('pbrt_path ('):
+            return real_loop(state, cond, body, *args, **kwargs)
+
+        def counted(*s):
+            calls.append(label)
+            return body(*s)
+        return real_loop(state, cond, counted, *args, **kwargs)
+
+    monkeypatch.setattr(dr, 'while_loop', counting_loop)
+    reflectance = 0.5 if case == 'no differentials' else {'type': 'pbrt_checkerboard'}
+    integrator = {'type': 'pbrt_path', 'max_depth': 4}
+    if case == 'aovs':
+        integrator['aovs'] = 'duv_dx'
+    scene_d = {
+        'type': 'scene', 'sensor': camera([0, 2, 4], [0, 0, 0], 16, 16),
+        'integrator': integrator,
+        'env': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [1, 1, 1]}},
+        'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(5),
+                  'bsdf': {'type': 'diffuse', 'reflectance': reflectance}}}
+    if case == 'mirror':
+        scene_d['ball'] = {'type': 'sphere', 'center': [0, 0.5, 0], 'radius': 0.5,
+                           'bsdf': {'type': 'conductor'}}
+    scene = mi.load_dict(scene_d)
+    image = np.array(mi.render(scene, spp=4, seed=1))
+    assert calls == ['pbrt_path (Primal)'], calls
+    assert np.all(np.isfinite(image))
+    if case == 'no differentials':
+        monkeypatch.setattr(dr, 'while_loop', real_loop)
+        prb = np.array(mi.render(mi.load_dict({**scene_d, 'integrator': {'type': 'prb',
+                                                                         'max_depth': 4}}),
+                                 spp=4, seed=1))
+        np.testing.assert_allclose(image, prb, rtol=1e-5, atol=1e-6)   # as the prb test above
