@@ -68,18 +68,21 @@ where differentials need it:
 * before ``si.bsdf()``, each hit gets ``si.duv_dx``/``si.duv_dy`` (``prb`` leaves them 0);
 * after BSDF sampling, the ray differential (:class:`~mitsuba_pbrt_tex.raydiff.RayDiff`) is
   propagated through ideal specular lobes or dropped — in scenes where some BSDF has such a
-  lobe (read from the BSDFs' flags at each render); elsewhere only camera hits use it;
+  lobe (read from the BSDFs' flags); elsewhere only camera hits use it;
 * the previous hit is kept as an ``Interaction3f`` (``prb``: a whole ``SurfaceInteraction3f``,
   of which the next bounce reads the same fields: a smaller loop state to trace);
 * the loop state is only what changes from bounce to bounce: the loop's read-only inputs are
   excluded from it and optional state (the propagated differential, AOVs, the Gaussian film's
   pixel, ``δL``) is ``None`` where it would stay constant (``prb`` carries ``δL`` and its inputs
-  in primal renders too, so Dr.Jit records its loop twice to remove them), and primal renders
-  record the loop once (``OptimizeLoops`` off in :meth:`sample`) — tracing the loop in Python
-  is a large part of a render's cost at Mitsuba's usual sizes;
+  in primal renders too, so Dr.Jit records its loop twice to remove them); the camera rays'
+  time is broadcast to the loop's width (state narrower than the loop is always re-recorded
+  away) and primal renders turn ``OptimizeLoops`` off (:meth:`sample`), so their loop is
+  recorded once — tracing the loop in Python is a large part of a render's cost at Mitsuba's
+  usual sizes;
 * the camera ray's differential is scaled by ``spp_scale`` (``prb`` discards it), the sensor is
-  remembered in ``sample_rays`` for the camera approximation, and the scene's textures are asked
-  (``prepare_differentials``) at each render;
+  remembered in ``sample_rays`` for the camera approximation, and the scene is searched once
+  for textures that read differentials and BSDFs with specular lobes (:meth:`scene_needs`;
+  the textures found are prepared again at each render);
 * optional AOVs with the first hit's uv partials;
 * ``footprint="pixel"``: ``sample()`` publishes the sensor to opting-in textures while it is
   traced (or run, in wavefront mode) — see :mod:`mitsuba_pbrt_tex.pixel`; the light transport,
@@ -181,16 +184,28 @@ class Plugin:
         """(does any texture use differentials — also prepares them —, does any BSDF have an
         ideal specular lobe to propagate a ray differential through).
 
-        Asked at every render, not cached: Mitsuba objects admit no weak references, an id()
-        may be reused by the next scene, and the traversal takes ~0.05 ms."""
+        The scene is traversed once, not at every render (10 ms for a thousand shapes): while
+        a scene lives, Mitsuba keeps its shapes in one JIT array (``shapes_dr()``), and holding
+        that array makes its variable index a key that no later scene can take (Mitsuba objects
+        admit no weak references, and an ``id()`` can be reused). The textures found to read
+        differentials are prepared again at every render (an image may have new texels). A
+        scene without shapes is traversed every time (there is nothing to key on, little to
+        traverse)."""
         if not self.texture_differentials:
             return False, False
+        shapes = scene.shapes_dr()
+        cached = getattr(self, '_scene_needs', None)
+        if cached is not None and shapes.index != 0 and cached[0].index == shapes.index:
+            _, readers, specular = cached
+            for t in readers:
+                uses_differentials(t)                              # prepares it
+            return bool(readers), specular
         nodes = list(mi.traverse(scene).hierarchy.keys())
-        textures = [n for n in nodes if isinstance(n, mi.Texture)]
-        want = any([uses_differentials(t) for t in textures])      # prepares every one
+        readers = [n for n in nodes if isinstance(n, mi.Texture) and uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
-        return want, specular
+        self._scene_needs = (shapes, readers, specular)
+        return bool(readers), specular
 
     def footprint(self, sensor) -> raydiff.CameraFootprint:
         """The camera approximation's minimum differentials, found anew at every render (the
@@ -418,9 +433,10 @@ class Plugin:
         # Only what changes from bounce to bounce is loop state: the loop's inputs that it only
         # reads are excluded below, and the optional state is None where it would stay constant
         # (the ray differential where no specular lobe propagates it, the AOVs, the Gaussian
-        # film's pixel, δL in primal renders). With no constant loop state, Dr.Jit traces the
-        # loop body once instead of twice (OptimizeLoops re-records a loop to remove constants):
-        # that tracing, in Python at every render, is a tenth of a 256² × 16 spp render.
+        # film's pixel, δL in primal renders). Dr.Jit re-records a loop to remove constant state
+        # (always when it is narrower than the loop, under OptimizeLoops otherwise); with none
+        # left but the time below, and OptimizeLoops off in primal renders (sample()), the body
+        # is traced once — tracing, in Python at every render, is a large part of its cost.
         diff = camera_diff if specular_scene else None
         first_duv_dx = mi.Vector2f(0) if self.aov_list else None
         first_duv_dy = mi.Vector2f(0) if self.aov_list else None
