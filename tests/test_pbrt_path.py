@@ -2,6 +2,7 @@
 mirrors, a footprint at every bounce, no NaN on hard cases."""
 
 import math
+import sys
 
 import drjit as dr
 import mitsuba as mi
@@ -461,7 +462,12 @@ def test_scene_traversed_once_per_scene_and_textures_prepared_at_every_render(mo
 
     traversals = []
     real_traverse = mi.traverse
-    monkeypatch.setattr(mi, 'traverse', lambda *a, **k: traversals.append(1) or real_traverse(*a, **k))
+
+    def counting_traverse(obj, *args, **kwargs):
+        if isinstance(obj, mi.Scene):           # (the sensor is traversed for another key)
+            traversals.append(1)
+        return real_traverse(obj, *args, **kwargs)
+    monkeypatch.setattr(mi, 'traverse', counting_traverse)
 
     first = scene_with({'type': 'pbrt_checkerboard', 'uscale': 8, 'vscale': 8})
     partials = [np.array(mi.render(first, spp=2, seed=s))[..., 3:5] for s in (1, 2)]
@@ -488,3 +494,37 @@ def test_scene_traversed_once_per_scene_and_textures_prepared_at_every_render(mo
     want = np.array(mi.render(scene_with(image(new)), spp=2, seed=3))[..., :3]
     assert np.abs(got - before).max() > 1e-2
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+
+
+def test_camera_approximation_found_again_only_when_the_sensor_changes(monkeypatch):
+    """The camera approximation (512 sensor rays, a few small kernels) is kept while the
+    sensor's parameters are unchanged and found again when one is written through ``params``.
+    Checked on the dome scene, where the card's bounce footprints come from it: two renders
+    build it once; after ``params.update()`` of the sensor's field of view it is built again, and
+    the image equals that of a scene loaded with the new field of view (same seed) — a kept
+    approximation of the old camera would give footprints the size of the old pixels (the
+    image differs by > 1e-3 between the two fields of view)."""
+    from mitsuba_pbrt_tex import raydiff
+    built = []
+    real = raydiff.CameraFootprint
+
+    class Counting(real):
+        def __init__(self, sensor):
+            built.append(1)
+            super().__init__(sensor)
+
+    monkeypatch.setattr(raydiff, 'CameraFootprint', Counting)
+    size = {'type': 'test_probe', 'mode': 'size'}
+    scene = _dome_scene(size, CARDS['diffuse'])
+    before = [np.array(mi.render(scene, spp=4, seed=s)) for s in (1, 1)]
+    assert len(built) == 1 and np.array_equal(before[0], before[1])
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith('x_fov')][0]
+    params[key] = DOME_FOV / 2
+    params.update()
+    after = np.array(mi.render(scene, spp=4, seed=1))
+    assert len(built) == 2
+    monkeypatch.setattr(sys.modules[__name__], 'DOME_FOV', DOME_FOV / 2)
+    fresh = np.array(mi.render(_dome_scene(size, CARDS['diffuse']), spp=4, seed=1))
+    assert np.abs(fresh - before[0]).max() > 1e-3
+    np.testing.assert_allclose(after, fresh, rtol=1e-6, atol=1e-8)
