@@ -446,9 +446,9 @@ class Plugin:
         # (always when it is narrower than the loop, under OptimizeLoops otherwise); with none
         # left but the time below, and OptimizeLoops off in primal renders (sample()), the body
         # is traced once — tracing, in Python at every render, is a large part of its cost.
-        diff = camera_diff if specular_scene else None
-        first_duv_dx = mi.Vector2f(0) if self.aov_list else None
-        first_duv_dy = mi.Vector2f(0) if self.aov_list else None
+        diff = camera_diff if want and specular_scene else None
+        first_duv_dx = mi.Vector2f(0) if want and self.aov_list else None
+        first_duv_dy = mi.Vector2f(0) if want and self.aov_list else None
         decoded = mi.Point2f(0) if pixels is not None else None
         decoded_ok = mi.Bool(False) if pixels is not None else None
         ray = mi.Ray3f(dr.detach(ray))
@@ -657,6 +657,7 @@ class Plugin:
         aovs = []
         for a in self.aov_list:
             v = first_duv_dx if a == 'duv_dx' else first_duv_dy
+            v = mi.Vector2f(0) if v is None else v            # no texture reads them
             aovs += [v.x, v.y]
         if dr.hint(pixels is not None, mode='scalar'):
             self._decoded = (decoded, decoded_ok)
