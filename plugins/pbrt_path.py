@@ -410,7 +410,8 @@ class Plugin:
         pixel ``pixel_pos`` (footprints stay the pixel's)."""
         k = mi.UInt32(0)
         acc = mi.Spectrum(0)
-        while dr.hint(edge & (k < self.silhouette_spp), label='pbrt_path (silhouettes)'):
+        while dr.hint(edge & (k < self.silhouette_spp), label='pbrt_path (silhouettes)',
+                      exclude=[self, scene, sensor, pixel_pos, edge, prep]):   # read only
             ray = self._film_ray(sensor, pixel_pos, sampler.next_2d(), edge)
             L, _, _, _ = self.trace(dr.ADMode.Primal, scene, sampler, ray, None, None, edge,
                                     prep=prep)
