@@ -531,3 +531,38 @@ def test_camera_approximation_found_again_only_when_the_sensor_changes(monkeypat
     fresh = np.array(mi.render(_dome_scene(size, CARDS['diffuse']), spp=4, seed=1))
     assert np.abs(fresh - before[0]).max() > 1e-3
     np.testing.assert_allclose(after, fresh, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize('rfilter, extra', [('gaussian', 0), ('box', 4)])
+def test_pixel_footprint_renders_record_each_loop_once(rfilter, extra, monkeypatch):
+    """As above, with ``footprint="pixel"``: a Gaussian film (the decoded pixel is loop state)
+    records the path loop once; silhouette samples record their own loop once, with the one
+    path loop inside it (two path-loop recordings in all, one per loop that traces paths)."""
+    calls = []
+    real_loop = dr.while_loop
+
+    def counting_loop(state, cond, body, *args, **kwargs):
+        label = kwargs.get('label') or ''
+
+        def counted(*s):
+            if label.startswith('pbrt_path'):
+                calls.append(label)
+            return body(*s)
+        return real_loop(state, cond, counted, *args, **kwargs)
+
+    monkeypatch.setattr(dr, 'while_loop', counting_loop)
+    sensor = camera([0, 2, 4], [0, 0, 0], 16, 16)
+    sensor['film']['rfilter'] = {'type': rfilter}
+    texels = mi.TensorXf(np.full((4, 4, 3), 0.5, np.float32))
+    scene = mi.load_dict({
+        'type': 'scene', 'sensor': sensor,
+        'integrator': {'type': 'pbrt_path', 'footprint': 'pixel', 'silhouette_spp': extra},
+        'env': {'type': 'constant'},
+        'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90),
+                  'bsdf': {'type': 'diffuse', 'reflectance': {
+                      'type': 'pbrt_imagemap', 'filter': 'box', 'data': texels}}}})
+    image = np.array(mi.render(scene, spp=2, seed=1))
+    want = ['pbrt_path (Primal)'] + (['pbrt_path (silhouettes)', 'pbrt_path (Primal)']
+                                     if extra else [])
+    assert calls == want
+    assert np.all(np.isfinite(image)) and image.max() > 0.1
