@@ -26,7 +26,9 @@ Where the differentials come from:
   propagated (pbrt-v4's formulas with shading-normal derivatives; the transmission formula is
   corrected, see :mod:`mitsuba_pbrt_tex.raydiff`) and dropped if an offset exceeds 1e16;
 * everywhere else (after diffuse/glossy bounces, or when a propagated differential is lost):
-  pbrt-v4's camera approximation — the footprint a camera ray would have at that point.
+  pbrt-v4's camera approximation — the footprint a camera ray would have at that point —, on
+  the shapes whose BSDF or emitter has a texture that reads differentials (its only readers;
+  the other shapes' hits after a bounce get zero partials, as under Mitsuba's integrators).
 
 ``footprint="pixel"``: with a box film filter each sample counts only in its own pixel, so a
 texture that opts in (``pbrt_imagemap`` ``filter="box"``) filters the footprint of the *pixel*
@@ -196,7 +198,7 @@ class Plugin:
         shapes = scene.shapes_dr()
         cached = getattr(self, '_scene_needs', None)
         if cached is not None and shapes.index != 0 and cached[0].index == shapes.index:
-            _, readers, specular = cached
+            _, readers, specular, _ = cached
             for t in readers:
                 uses_differentials(t)                              # prepares it
             return bool(readers), specular
@@ -204,7 +206,7 @@ class Plugin:
         readers = [n for n in nodes if isinstance(n, mi.Texture) and uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
-        self._scene_needs = (shapes, readers, specular)
+        self._scene_needs = (shapes, readers, specular, _reader_shapes(scene, readers))
         return bool(readers), specular
 
     def footprint(self, sensor) -> raydiff.CameraFootprint:
@@ -367,15 +369,17 @@ class Plugin:
 
     def prepare_trace(self, scene, sampler, sensor):
         """(does any texture use differentials, the camera differential's scale, the camera
-        approximation, does a BSDF have an ideal specular lobe) — computed once per
-        ``sample()``, outside any symbolic loop."""
+        approximation, does a BSDF have an ideal specular lobe, the shapes whose textures read
+        differentials (:func:`_reader_shapes`)) — computed once per ``sample()``, outside any
+        symbolic loop."""
         want, specular = self.scene_needs(scene)
+        gate = self._scene_needs[3] if want else None
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
         # (but a frozen function cannot record the host → device copy; spp is part of its key)
         scale = raydiff.spp_scale(spp, self.spp_mode)
         scale = mi.Float(scale) if dr.flag(dr.JitFlag.FreezingScope) else dr.opaque(mi.Float, scale)
-        return want, scale, (self.footprint(sensor) if want else None), specular
+        return want, scale, (self.footprint(sensor) if want else None), specular, gate
 
     # ------------------------------------------------------------------ silhouette samples
     def _film_ray(self, sensor, pixel_pos, offset, active):
@@ -430,7 +434,7 @@ class Plugin:
         mis_weight, solid_angle_to_area_jacobian = _prb_helpers()
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
-        want, scale, camera, specular_scene = prep
+        want, scale, camera, specular_scene, reader_shapes = prep
 
         # ---- differentials: the camera ray's, scaled for the sample count --------------------
         if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
@@ -478,7 +482,7 @@ class Plugin:
         while dr.hint(active, max_iterations=self.max_depth, label=f'pbrt_path ({mode.name})',
                       exclude=[scene, self, sensor, mode, primal, bsdf_ctx, mis_weight,
                                solid_angle_to_area_jacobian, want, scale, camera,
-                               specular_scene, pixels, camera_diff]):
+                               specular_scene, reader_shapes, pixels, camera_diff]):
             active_next = mi.Bool(active)
 
             # ---- the hit, with derivative tracking in the differential phases --------------
@@ -522,6 +526,12 @@ class Plugin:
                     false_fn=lambda p, n, m: (mi.Vector3f(0), mi.Vector3f(0), mi.Bool(False)),
                     label='pbrt_path: differential')
                 use = valid & ~ok
+                if dr.hint(reader_shapes is not None, mode='scalar'):
+                    # the camera approximation's only reader is the hit's own textures: none on
+                    # the other shapes (camera hits keep it for the AOVs)
+                    shape = dr.reinterpret_array(mi.UInt32, si.shape)
+                    use &= (depth == 0) | dr.gather(
+                        mi.Bool, reader_shapes, shape, use & (shape < dr.width(reader_shapes)))
                 dpdx, dpdy = dr.if_stmt(
                     args=(p_hit, n_hit, use, dpdx, dpdy), cond=use,
                     true_fn=lambda p, n, m, x, y: camera.dp_dxy(p, n, scale, m),
@@ -698,6 +708,38 @@ class _PixelSensor:
 
     def __getattr__(self, name):
         return getattr(self.sensor, name)
+
+
+def _reader_shapes(scene, readers):
+    """Which shapes have a texture that reads differentials in their BSDF or emitter (nested
+    ones included): a mask over Mitsuba's shape registry ids (``si.shape``) — or None where
+    there is nothing to skip: every shape has one, no texture reads differentials, or the scene
+    has instances (the shapes hit inside them are not the scene's). The camera approximation
+    after a bounce is computed only on the shapes it marks; a propagated ray differential is
+    never affected (specular hits use the ray's own, on any shape)."""
+    shapes = scene.shapes()
+    if not readers or not shapes or any(s.class_name() == 'Instance' for s in shapes):
+        return None
+    wanted = {id(t) for t in readers}               # the readers are held by the caller
+    seen = {}                                       # id → (object held, holds a reader)
+
+    def holds(obj):
+        if obj is None:
+            return False
+        if id(obj) not in seen:
+            nodes = mi.traverse(obj).hierarchy.keys()
+            seen[id(obj)] = (obj, any(id(n) in wanted for n in nodes))
+        return seen[id(obj)][1]
+
+    ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in shapes]
+    marked = [i for i, s in zip(ids, shapes) if holds(s.bsdf()) or holds(s.emitter())]
+    if len(marked) == len(shapes):
+        return None
+    table = dr.zeros(mi.Bool, max(ids) + 1)
+    if marked:
+        dr.scatter(table, True, mi.UInt32(marked))
+    dr.eval(table)
+    return table
 
 
 def _state_key(obj) -> tuple:

@@ -566,3 +566,88 @@ def test_pixel_footprint_renders_record_each_loop_once(rfilter, extra, monkeypat
                                      if extra else [])
     assert calls == want
     assert np.all(np.isfinite(image)) and image.max() > 0.1
+
+
+def _gating_scene(walls, alpha):
+    """A room whose floor has a fine checker image (bilinear: bounce hits read coarse MIP
+    levels from their footprint) and whose walls have ``walls`` as reflectance; a glossy ball
+    of roughness ``alpha``."""
+    texels = (np.indices((16, 16)).sum(0) % 2)[..., None]
+    floor = {'type': 'pbrt_imagemap', 'filter': 'bilinear', 'to_uv': T().scale([40, 40, 1]),
+             'data': mi.TensorXf(np.repeat(texels, 3, 2).astype(np.float32))}
+    wall = lambda xf: {'type': 'rectangle', 'to_world': xf,
+                       'bsdf': {'type': 'diffuse', 'reflectance': walls}}
+    return mi.load_dict({
+        'type': 'scene', 'sensor': camera([0, 1.5, 3], [0, 0.5, -2], 24, 16),
+        'integrator': {'type': 'pbrt_path', 'max_depth': 4},
+        'sun': {'type': 'directional', 'direction': [0.3, -1, -0.4]},
+        'env': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [0.3, 0.3, 0.3]}},
+        'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(4),
+                  'bsdf': {'type': 'diffuse', 'reflectance': floor}},
+        'back': wall(T().translate([0, 2, -3]).scale(4)),
+        'left': wall(T().translate([-3, 2, 0]).rotate([0, 1, 0], 90).scale(4)),
+        'ball': {'type': 'sphere', 'center': [0.5, 0.5, -1], 'radius': 0.5,
+                 'bsdf': {'type': 'roughconductor', 'alpha': alpha}}})
+
+
+def _readers(scene):
+    from mitsuba_pbrt_tex.texture import uses_differentials
+    return [n for n in mi.traverse(scene).hierarchy
+            if isinstance(n, mi.Texture) and uses_differentials(n)]
+
+
+def test_camera_approximation_skipped_on_shapes_without_a_reader_changes_no_pixel():
+    """After a bounce, the camera approximation is computed only on shapes with a texture
+    that reads it (``_reader_shapes``): the walls' plain reflectance and the ball read nothing.
+    Reference: the same room whose walls' reflectance and ball's roughness are
+    ``pbrt_checkerboard``s of two equal values — the same BSDFs, but textures that read
+    differentials on every shape, so no shape is skipped. The
+    renders (same seed) must agree to float32 rounding (as the ``prb`` comparison above); a
+    floor left out of the mask (its bounce hits then read MIP level 0) changes pixels by far
+    more. A mask that is None here would mean nothing was skipped: checked too."""
+    from mitsuba_pbrt_tex.plugins.pbrt_path import _reader_shapes
+    gated = _gating_scene(0.5, 0.3)
+    reference = _gating_scene({'type': 'pbrt_checkerboard', 'tex1': 0.5, 'tex2': 0.5},
+                              {'type': 'pbrt_checkerboard', 'tex1': 0.3, 'tex2': 0.3})
+    assert _reader_shapes(gated, _readers(gated)) is not None
+    assert _reader_shapes(reference, _readers(reference)) is None
+    a = np.array(mi.render(gated, spp=16, seed=4))
+    b = np.array(mi.render(reference, spp=16, seed=4))
+    assert a.mean() > 0.05
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_reader_shapes_are_those_whose_bsdf_or_emitter_holds_a_reader():
+    """The mask over shape ids against the scene's description: a reader directly in a BSDF,
+    nested in ``twosided`` and ``blendbsdf``, in a ``bumpmap``, and in an area emitter's
+    radiance marks its shape; plain BSDFs and emitters, Mitsuba's own textures and a
+    ``pbrt_constant`` (which reads no differentials) do not. None when every shape is marked
+    or no texture reads differentials."""
+    from mitsuba_pbrt_tex.plugins.pbrt_path import _reader_shapes
+    checker = {'type': 'pbrt_checkerboard'}
+    shapes = {
+        'direct': {'type': 'diffuse', 'reflectance': checker},
+        'twosided': {'type': 'twosided', 'bsdf': {'type': 'diffuse', 'reflectance': checker}},
+        'blend': {'type': 'blendbsdf', 'weight': {'type': 'pbrt_checkerboard'},
+                  'a': {'type': 'diffuse'}, 'b': {'type': 'conductor'}},
+        'bump': {'type': 'bumpmap', 'arbitrary': checker, 'bsdf': {'type': 'diffuse'}},
+        'emitter': {'type': 'diffuse'},
+        'plain': {'type': 'diffuse', 'reflectance': {'type': 'checkerboard'}},
+        'constant': {'type': 'diffuse', 'reflectance': {'type': 'pbrt_constant', 'value': 0.3}},
+        'plain_light': {'type': 'diffuse'},
+    }
+    scene_d = {'type': 'scene'}
+    for k, (name, bsdf) in enumerate(shapes.items()):
+        scene_d[name] = {'type': 'sphere', 'center': [3 * k, 0, 0], 'bsdf': bsdf}
+    scene_d['emitter']['emitter'] = {'type': 'area', 'radiance': checker}
+    scene_d['plain_light']['emitter'] = {'type': 'area', 'radiance': 2.0}
+    scene = mi.load_dict(scene_d)
+    mask = np.array(_reader_shapes(scene, _readers(scene)))
+    marked = {s.id(): bool(mask[int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0])])
+              for s in scene.shapes()}
+    assert marked == {'direct': True, 'twosided': True, 'blend': True, 'bump': True,
+                      'emitter': True, 'plain': False, 'constant': False,
+                      'plain_light': False}
+    assert _reader_shapes(scene, []) is None
+    only = mi.load_dict({'type': 'scene', 'a': scene_d['direct'], 'b': scene_d['twosided']})
+    assert _reader_shapes(only, _readers(only)) is None
