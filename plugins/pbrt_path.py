@@ -189,9 +189,9 @@ class Plugin:
         The scene is traversed once, not at every render (10 ms for a thousand shapes): while
         a scene lives, Mitsuba keeps its shapes in one JIT array (``shapes_dr()``), and holding
         that array makes its variable index a key that no later scene can take (Mitsuba objects
-        admit no weak references, and an ``id()`` can be reused). The textures found to read
-        differentials are prepared again at every render (an image may have new texels). A
-        scene without shapes is traversed every time (there is nothing to key on, little to
+        admit no weak references, and an ``id()`` can be reused). A texture, once prepared,
+        stays so (an image rebuilds every MIP level it had when its texels change). A scene
+        without shapes is traversed every time (there is nothing to key on, little to
         traverse)."""
         if not self.texture_differentials:
             return False, False
@@ -199,8 +199,6 @@ class Plugin:
         cached = getattr(self, '_scene_needs', None)
         if cached is not None and shapes.index != 0 and cached[0].index == shapes.index:
             _, readers, specular, _ = cached
-            for t in readers:
-                uses_differentials(t)                              # prepares it
             return bool(readers), specular
         nodes = list(mi.traverse(scene).hierarchy.keys())
         readers = [n for n in nodes if isinstance(n, mi.Texture) and uses_differentials(n)]

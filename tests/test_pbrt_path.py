@@ -230,7 +230,7 @@ def test_second_bounce_diffuse_hits_get_finite_nonzero_partials():
     assert off.mean() < 1e-6
 
 
-def _dome_scene(radiance, card_bsdf):
+def _dome_scene(radiance, card_bsdf, target=(0, 0, -1)):
     """Camera at the centre of an emitting sphere (R = 10, normals inward, not sampled by NEE)
     looking down -z; a diffuse or glossy card at z = -1 covers the left half of the view.
     Pixels on the right see the sphere directly (depth 0: the true camera-ray footprint);
@@ -239,7 +239,7 @@ def _dome_scene(radiance, card_bsdf):
     approximation gives one footprint size everywhere. The sphere's poles are turned to ±x, away from the card's
     bounces."""
     return mi.load_dict({
-        'type': 'scene', 'sensor': camera([0, 0, 0], [0, 0, -1], DOME_RES, DOME_RES, fov=DOME_FOV),
+        'type': 'scene', 'sensor': camera([0, 0, 0], list(target), DOME_RES, DOME_RES, fov=DOME_FOV),
         'integrator': {'type': 'pbrt_path', 'max_depth': 2},
         'dome': {'type': 'sphere', 'radius': DOME_R, 'flip_normals': True,
                  'to_world': T().rotate([0, 1, 0], 90),
@@ -443,10 +443,9 @@ def test_primal_renders_record_the_path_loop_once(case, monkeypatch):
         assert np.all(image[..., 3:] == 0)        # AOV partials: no texture reads them
 
 
-def test_scene_traversed_once_per_scene_and_textures_prepared_at_every_render(monkeypatch):
+def test_scene_traversed_once_per_scene(monkeypatch):
     """``scene_needs`` traverses a scene once (keyed by the JIT array of its shapes, which no
-    other scene can share while the key is held) and prepares the textures it found at every
-    render. Checked three ways: (1) a second render of one scene makes no ``mi.traverse`` call;
+    other scene can share while the key is held). Checked three ways: (1) a second render of one scene makes no ``mi.traverse`` call;
     (2) the same integrator object given to another scene, whose only texture does not read
     differentials, traverses that scene and writes zero partials — a stale answer would keep
     computing them; (3) after ``params.update()`` of a bilinear image's texels, the coarse MIP
@@ -531,6 +530,17 @@ def test_camera_approximation_found_again_only_when_the_sensor_changes(monkeypat
     fresh = np.array(mi.render(_dome_scene(size, CARDS['diffuse']), spp=4, seed=1))
     assert np.abs(fresh - before[0]).max() > 1e-3
     np.testing.assert_allclose(after, fresh, rtol=1e-6, atol=1e-8)
+    # the camera turned (its to_world, a transform: keyed by its matrix's variables)
+    target = [0.3, 0.1, -1]
+    key = [k for k in params.keys() if k.endswith('to_world') and 'dome' not in k
+           and 'card' not in k][0]
+    params[key] = T().look_at([0, 0, 0], target, [0, 1, 0])
+    params.update()
+    count = len(built)
+    turned = np.array(mi.render(scene, spp=4, seed=1))
+    assert len(built) == count + 1
+    fresh = np.array(mi.render(_dome_scene(size, CARDS['diffuse'], target), spp=4, seed=1))
+    np.testing.assert_allclose(turned, fresh, rtol=1e-6, atol=1e-8)
 
 
 @pytest.mark.parametrize('rfilter, extra', [('gaussian', 0), ('box', 4)])
@@ -609,8 +619,14 @@ def test_camera_approximation_skipped_on_shapes_without_a_reader_changes_no_pixe
     gated = _gating_scene(0.5, 0.3)
     reference = _gating_scene({'type': 'pbrt_checkerboard', 'tex1': 0.5, 'tex2': 0.5},
                               {'type': 'pbrt_checkerboard', 'tex1': 0.3, 'tex2': 0.3})
-    assert _reader_shapes(gated, _readers(gated)) is not None
-    assert _reader_shapes(reference, _readers(reference)) is None
+    mask = _reader_shapes(gated, _readers(gated))
+    assert mask is not None and _reader_shapes(reference, _readers(reference)) is None
+    # ... and the mask is what the path tracer is given (the images cannot show it)
+    integrator = gated.integrator()
+    integrator.scene_needs(gated)
+    sensor = gated.sensors()[0]
+    prep = integrator.prepare_trace(gated, sensor.sampler(), sensor)
+    np.testing.assert_array_equal(np.array(prep[4]), np.array(mask))
     a = np.array(mi.render(gated, spp=16, seed=4))
     b = np.array(mi.render(reference, spp=16, seed=4))
     assert a.mean() > 0.05
@@ -649,5 +665,12 @@ def test_reader_shapes_are_those_whose_bsdf_or_emitter_holds_a_reader():
                       'emitter': True, 'plain': False, 'constant': False,
                       'plain_light': False}
     assert _reader_shapes(scene, []) is None
+    # instances: their shapes are not the scene's (si.shape is the instanced one): no mask
+    with_instance = mi.load_dict({
+        'type': 'scene', 'a': scene_d['direct'], 'b': scene_d['plain'],
+        'group': {'type': 'shapegroup', 'c': {'type': 'sphere', 'bsdf': shapes['plain']}},
+        'instance': {'type': 'instance', 'shapegroup': {'type': 'ref', 'id': 'group'},
+                     'to_world': T().translate([0, 5, 0])}})
+    assert _reader_shapes(with_instance, _readers(with_instance)) is None
     only = mi.load_dict({'type': 'scene', 'a': scene_d['direct'], 'b': scene_d['twosided']})
     assert _reader_shapes(only, _readers(only)) is None
