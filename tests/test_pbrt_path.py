@@ -541,6 +541,17 @@ def test_camera_approximation_found_again_only_when_the_sensor_changes(monkeypat
     assert len(built) == count + 1
     fresh = np.array(mi.render(_dome_scene(size, CARDS['diffuse'], target), spp=4, seed=1))
     np.testing.assert_allclose(turned, fresh, rtol=1e-6, atol=1e-8)
+    # a smaller film (not a JIT value: keyed by value) has larger pixels
+    for name in ('film.size', 'film.crop_size'):
+        params[[k for k in params.keys() if k.endswith(name)][0]] = \
+            mi.ScalarVector2u(DOME_RES // 2, DOME_RES // 2)
+    params.update()
+    count = len(built)
+    halved = np.array(mi.render(scene, spp=4, seed=1))
+    assert len(built) == count + 1
+    monkeypatch.setattr(sys.modules[__name__], 'DOME_RES', DOME_RES // 2)
+    fresh = np.array(mi.render(_dome_scene(size, CARDS['diffuse'], target), spp=4, seed=1))
+    np.testing.assert_allclose(halved, fresh, rtol=1e-6, atol=1e-8)
 
 
 @pytest.mark.parametrize('rfilter, extra', [('gaussian', 0), ('box', 4)])
