@@ -637,6 +637,72 @@ def test_bitmap_parameter_matches_mitsuba_bitmap(kind, rng):
     np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=1e-6)
 
 
+def _bitmap_of_kind(kind, rng, h, w):
+    """An ``mi.Bitmap`` the user might build: pixel format, component type, sRGB flag."""
+    PF = mi.Bitmap.PixelFormat
+    fmt, comp, srgb = kind.split('_')
+    channels = {'y': 1, 'ya': 2, 'rgb': 3, 'rgba': 4, 'xyz': 3}[fmt]
+    if comp in ('u8', 'u16', 'u32'):
+        bits = int(comp[1:])
+        px = rng.integers(0, 2**bits, (h, w, channels), dtype=np.uint64).astype(f'uint{bits}')
+    else:
+        px = rng.uniform(0.0, 1.0, (h, w, channels)).astype({'f16': np.float16, 'f32': np.float32}[comp])
+    bmp = mi.Bitmap(px, {'y': PF.Y, 'ya': PF.YA, 'rgb': PF.RGB, 'rgba': PF.RGBA, 'xyz': PF.XYZ}[fmt])
+    bmp.set_srgb_gamma(srgb == 'srgb')
+    return bmp
+
+
+@pytest.mark.parametrize('kind', ['xyz_f32_lin', 'y_f32_lin', 'ya_f32_lin', 'ya_u8_srgb',
+                                  'ya_u16_srgb', 'rgba_f16_lin', 'rgba_f32_lin', 'rgba_u8_srgb',
+                                  'rgba_u16_srgb', 'rgb_f32_srgb', 'rgba_f32_srgb', 'rgb_u32_lin'])
+def test_bitmap_objects_of_every_format_match_mitsuba_bitmap(kind, rng):
+    """The ``bitmap`` parameter with the pixel formats and component types a user's
+    ``mi.Bitmap`` may have — XYZ (converted to RGB), Y/YA, RGBA (alpha dropped), float16/32,
+    8/16/32-bit integers, and float pixels flagged sRGB (which Mitsuba linearises) — equals
+    Mitsuba's ``bitmap`` given the same object, at texel centres and random bilinear lookups
+    (``eval`` and ``eval_1``). ``format = variant`` keeps Mitsuba's texels in float32 (by default
+    it stores integer images as float16, 5e-4 relative). Mitsuba decodes sRGB codes with its
+    rational approximation of the curve (≤ 4.2e-7 from the exact one the package applies to
+    16-bit codes), and float32 rounding of the bilinear weights adds ~1e-7: atol 2e-6, as for
+    16-bit files; the other kinds go through the same ``Bitmap.convert`` and agree to rounding.
+    The wrong conversions are ≥ 1e-3 off (a 16-bit image cut to 8 bits, float texels left in
+    sRGB, XYZ read as RGB, 32-bit codes not normalised) or refused (alpha left in).
+
+    The user's bitmap is theirs: constructing the texture leaves its pixels as they were, and
+    changing them afterwards does not change the texture."""
+    h, w = 5, 7
+    bmp = _bitmap_of_kind(kind, rng, h, w)
+    before, fmt = np.array(bmp, copy=True), bmp.pixel_format()
+    theirs = mi.load_dict({'type': 'bitmap', 'bitmap': bmp, 'format': 'variant'})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp})
+    np.testing.assert_array_equal(np.array(bmp, copy=True), before)
+    assert bmp.pixel_format() == fmt
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
+    got = A(ours.eval(si))
+    np.testing.assert_allclose(got, A(theirs.eval(si)), atol=2e-6)
+    np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=2e-6)
+    view = np.array(bmp, copy=False)            # the user's own pixels, written in place
+    view[...] = 0
+    assert not np.array(bmp, copy=True).any()
+    np.testing.assert_array_equal(A(ours.eval(si)), got)
+
+
+def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitmap():
+    """A user's float32 RGB bitmap with NaN, ±inf and values beyond ±1e38: the texture reads 0
+    for the non-finite texels and ±1e38 for the clamped ones (numpy's ``where``/``clip`` on the
+    same pixels; nearest lookups at texel centres return texels exactly), while the bitmap
+    keeps every value it had, NaNs included — the repairs are made on the package's copy.
+    (Mitsuba's ``bitmap`` is no reference here: it keeps the NaNs.)"""
+    px = np.random.default_rng(5).uniform(0, 1, (3, 4, 3)).astype(np.float32)
+    px[0, 0, 0], px[1, 2, 1], px[2, 3, 2], px[2, 1, 0] = np.nan, np.inf, -np.inf, 3e38
+    px[0, 3, 1] = -2e38
+    bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp, 'filter': 'point'})
+    np.testing.assert_array_equal(np.array(bmp, copy=True), px)    # NaNs compare equal here
+    want = np.clip(np.where(np.isfinite(px), px, 0), -1e38, 1e38).reshape(-1, 3)
+    np.testing.assert_array_equal(A(ours.eval(make_si(_texel_centres(4, 3)))), want)
+
+
 # ------------------------------------------------------------------------------------ eval_1_grad
 @pytest.mark.parametrize('filt,convention', [('trilinear', 'v3'), ('trilinear', 'v4'),
                                              ('bilinear', 'v3')])
