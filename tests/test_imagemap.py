@@ -920,6 +920,54 @@ def test_nonfinite_texels_of_a_file_replaced_with_warning(ext, capfd, rng, tmp_p
     assert '5 non-finite texel value(s) replaced by 0' in captured.out + captured.err
 
 
+def _write_exr_channels(path, channels):
+    import OpenEXR
+    header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
+    with OpenEXR.File(header, channels) as f:
+        f.write(path)
+
+
+@pytest.mark.parametrize('kind', ['RGBA', 'RGBA_half', 'YA'])
+def test_exr_files_with_alpha_match_bitmap(kind, rng, tmp_path):
+    """OpenEXR files with an alpha channel (float and half) and luminance with alpha: the
+    texture is Mitsuba's ``bitmap`` of the same file with ``format = variant`` (float32 texels,
+    alpha dropped as ``bitmap`` drops it), at texel centres and random bilinear lookups. Both
+    read the same float texels and filter them alike: atol 1e-6 (float32 rounding of the
+    bilinear weights). Alpha taken as a colour channel is refused (4 channels)."""
+    h, w = 5, 6
+    dtype = np.float16 if kind.endswith('half') else np.float32
+    plane = lambda: rng.uniform(0, 1, (h, w)).astype(dtype)
+    names = {'RGBA': 'RGBA', 'RGBA_half': 'RGBA', 'YA': 'YA'}[kind]
+    path = str(tmp_path / 'img.exr')
+    _write_exr_channels(path, {n: plane() for n in names})
+    theirs = mi.load_dict({'type': 'bitmap', 'filename': path, 'format': 'variant'})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
+    np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
+
+
+@pytest.mark.parametrize('types', ['float_rgb_half_a', 'half_r_float_gb', 'rgb_and_depth'])
+def test_exr_files_mixing_channel_types_or_with_depth_load_exactly(types, rng, tmp_path):
+    """An OpenEXR file whose R, G, B (and A) channels do not share one pixel type — float colour
+    with a half alpha, say — is valid; the OpenEXR package cannot interleave such channels, and
+    the texture reads them one by one. A file with a depth channel Z next to R, G, B: the colour
+    channels. Reference: the planes written (half values are float32 values exactly), by point
+    lookups at texel centres, exact. (Mitsuba's ``bitmap`` is no reference here: it stores the
+    first image as half floats and refuses the second.)"""
+    h, w = 4, 5
+    f32, f16 = np.float32, np.float16
+    kinds = {'float_rgb_half_a': dict(R=f32, G=f32, B=f32, A=f16),
+             'half_r_float_gb': dict(R=f16, G=f32, B=f32),
+             'rgb_and_depth': dict(R=f32, G=f32, B=f32, Z=f32)}[types]
+    planes = {n: rng.uniform(0, 1, (h, w)).astype(t) for n, t in kinds.items()}
+    path = str(tmp_path / 'mixed.exr')
+    _write_exr_channels(path, dict(planes))     # (the writer replaces the dict's values)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    got = A(tex.eval(make_si(_texel_centres(w, h)))).reshape(h, w, 3)
+    want = np.stack([planes[n].astype(np.float32) for n in 'RGB'], -1)
+    np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize('shape', [(1, 7), (5, 1), (1, 1)])
 def test_one_texel_wide_files_load_and_match_bitmap(shape, rng, tmp_path):
     """Files one texel wide or high (or a single texel) are valid images: equal to Mitsuba's
