@@ -1,6 +1,7 @@
 """pbrt_imagemap: parity with Mitsuba's bitmap, filters against independent numpy references,
 hard cases, errors, encodings, caching."""
 
+import gc
 import math
 import os
 import threading
@@ -435,6 +436,48 @@ def test_file_pyramid_shared_and_built_once_across_threads():
     p.update()
     si = make_si([[0.5, 0.5]])
     assert A(texs[0].eval_1(si))[0] == 0 and A(texs[1].eval_1(si))[0] > 0
+
+
+def test_file_pyramids_are_built_once_and_served_to_later_textures(monkeypatch):
+    """A file's pyramid is built on the first request and every later texture of the file gets
+    that one: three bilinear textures (level 0 alone), two trilinear ones (every level), one
+    more bilinear one (served by the complete pyramid) build two pyramids in all — counted by
+    wrapping the package's ``build_pyramid`` — and share them."""
+    import mitsuba_pbrt_tex.image as image
+    calls, real = [], image.build_pyramid
+
+    def counting(tensor, levels):
+        calls.append(levels)
+        return real(tensor, levels)
+
+    monkeypatch.setattr(image, 'build_pyramid', counting)
+    image_cache.clear()
+    path = os.path.join(DATA, 'rgb_13x17.exr')
+
+    def load(filt):
+        return mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': filt})
+
+    bil = [load('bilinear') for _ in range(3)]
+    assert calls == [False] and len({id(t.pyramid) for t in bil}) == 1
+    tri = [load('trilinear') for _ in range(2)]
+    assert calls == [False, True] and tri[0].pyramid is tri[1].pyramid
+    late = load('bilinear')
+    assert calls == [False, True] and late.pyramid is tri[0].pyramid
+
+
+def test_cache_forgets_a_file_when_its_last_texture_dies(tmp_path):
+    """The cache holds decoded files weakly and drops a file's entry as its last texture dies,
+    by itself: edited versions of a file loaded over a long session leave no entries behind.
+    (The stored entries are read directly: ``len()`` and lookups would prune dead ones.)"""
+    from mitsuba_pbrt_tex.outputs import write_exr
+    image_cache.clear()
+    path = str(tmp_path / 'img.exr')
+    write_exr(path, np.random.default_rng(2).random((4, 5, 3)).astype(np.float32))
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    assert len(image_cache._entries) == 1
+    del tex
+    gc.collect()
+    assert len(image_cache._entries) == 0
 
 
 def test_scene_with_identical_textures_loads_in_parallel():
