@@ -438,6 +438,24 @@ def test_file_pyramid_shared_and_built_once_across_threads():
     assert A(texs[0].eval_1(si))[0] == 0 and A(texs[1].eval_1(si))[0] > 0
 
 
+def test_files_read_records_every_image_file_textures_read(tmp_path):
+    """``files_read()`` (which the command line uses to refuse outputs that would overwrite an
+    input) collects the real path of each image file a texture reads, cached or not — here
+    through a symbolic link, and twice — and nothing outside its block."""
+    from mitsuba_pbrt_tex.image import files_read
+    image_cache.clear()
+    path = os.path.join(DATA, 'srgb_11x9.png')
+    link = str(tmp_path / 'link.png')
+    os.symlink(path, link)
+    with files_read() as found:
+        a = mi.load_dict({'type': 'pbrt_imagemap', 'filename': link})
+        b = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})      # cached
+    assert found == {os.path.realpath(path)}
+    c = mi.load_dict({'type': 'pbrt_imagemap', 'filename': os.path.join(DATA, 'gray_8x6.png')})
+    assert found == {os.path.realpath(path)}
+    del a, b, c
+
+
 def test_file_pyramids_are_built_once_and_served_to_later_textures(monkeypatch):
     """A file's pyramid is built on the first request and every later texture of the file gets
     that one: three bilinear textures (level 0 alone), two trilinear ones (every level), one
@@ -730,20 +748,26 @@ def test_bitmap_objects_of_every_format_match_mitsuba_bitmap(kind, rng):
     np.testing.assert_array_equal(A(ours.eval(si)), got)
 
 
-def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitmap():
-    """A user's float32 RGB bitmap with NaN, ±inf and values beyond ±1e38: the texture reads 0
-    for the non-finite texels and ±1e38 for the clamped ones (numpy's ``where``/``clip`` on the
-    same pixels; nearest lookups at texel centres return texels exactly), while the bitmap
-    keeps every value it had, NaNs included — the repairs are made on the package's copy.
-    (Mitsuba's ``bitmap`` is no reference here: it keeps the NaNs.)"""
+def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitmap(capfd):
+    """A user's float32 RGB bitmap with NaN, ±inf, values beyond ±1e38 (two above, one below)
+    and one exactly at 1e38: the texture reads 0 for the non-finite texels and ±1e38 for the
+    clamped ones (numpy's ``where``/``clip`` on the same pixels; nearest lookups at texel
+    centres return texels exactly), and warns with the counts (3 non-finite, 3 clamped — the
+    texel at the limit is not clamped), while the bitmap keeps every value it had, NaNs
+    included: the repairs are made on the package's copy. (Mitsuba's ``bitmap`` is no
+    reference here: it keeps the NaNs.)"""
     px = np.random.default_rng(5).uniform(0, 1, (3, 4, 3)).astype(np.float32)
     px[0, 0, 0], px[1, 2, 1], px[2, 3, 2], px[2, 1, 0] = np.nan, np.inf, -np.inf, 3e38
-    px[0, 3, 1] = -2e38
+    px[0, 3, 1], px[1, 0, 2], px[2, 2, 1] = -2e38, 1.5e38, 1e38
     bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
     ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp, 'filter': 'point'})
     np.testing.assert_array_equal(np.array(bmp, copy=True), px)    # NaNs compare equal here
     want = np.clip(np.where(np.isfinite(px), px, 0), -1e38, 1e38).reshape(-1, 3)
     np.testing.assert_array_equal(A(ours.eval(make_si(_texel_centres(4, 3)))), want)
+    captured = capfd.readouterr()
+    log = captured.out + captured.err
+    assert '3 non-finite texel value(s) replaced by 0' in log
+    assert '3 texel value(s) beyond ±1e38 clamped' in log
 
 
 # ------------------------------------------------------------------------------------ eval_1_grad
@@ -959,6 +983,9 @@ def test_nonfinite_texels_of_a_file_replaced_with_warning(ext, capfd, rng, tmp_p
     tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
     got = A(tex.eval(make_si(_texel_centres(6, 4)))).reshape(4, 6, 3)
     np.testing.assert_array_equal(got, np.where(np.isfinite(img), img, 0))
+    # the texels the texture exposes (``params['data']``, what an optimisation starts from)
+    # are the repaired ones too, not only what the filters read
+    np.testing.assert_array_equal(np.array(mi.traverse(tex)['data']), np.where(np.isfinite(img), img, 0))
     captured = capfd.readouterr()
     assert '5 non-finite texel value(s) replaced by 0' in captured.out + captured.err
 
