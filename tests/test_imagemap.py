@@ -750,20 +750,21 @@ def test_bitmap_objects_of_every_format_match_mitsuba_bitmap(kind, rng):
 
 def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitmap(capfd):
     """A user's float32 RGB bitmap with NaN, ±inf, values beyond ±1e38 (two above, one below)
-    and one exactly at 1e38: the texture reads 0 for the non-finite texels and ±1e38 for the
+    and two exactly at ±1e38: the texture reads 0 for the non-finite texels and ±1e38 for the
     clamped ones (numpy's ``where``/``clip`` on the same pixels; nearest lookups at texel
     centres return texels exactly), and warns with the counts (3 non-finite, 3 clamped — the
-    texel at the limit is not clamped), while the bitmap keeps every value it had, NaNs
+    texels at the limits are not clamped), while the bitmap keeps every value it had, NaNs
     included: the repairs are made on the package's copy. (Mitsuba's ``bitmap`` is no
     reference here: it keeps the NaNs.)"""
     px = np.random.default_rng(5).uniform(0, 1, (3, 4, 3)).astype(np.float32)
     px[0, 0, 0], px[1, 2, 1], px[2, 3, 2], px[2, 1, 0] = np.nan, np.inf, -np.inf, 3e38
-    px[0, 3, 1], px[1, 0, 2], px[2, 2, 1] = -2e38, 1.5e38, 1e38
+    px[0, 3, 1], px[1, 0, 2], px[2, 2, 1], px[1, 1, 1] = -2e38, 1.5e38, 1e38, -1e38
     bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
     ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp, 'filter': 'point'})
     np.testing.assert_array_equal(np.array(bmp, copy=True), px)    # NaNs compare equal here
     want = np.clip(np.where(np.isfinite(px), px, 0), -1e38, 1e38).reshape(-1, 3)
     np.testing.assert_array_equal(A(ours.eval(make_si(_texel_centres(4, 3)))), want)
+    np.testing.assert_array_equal(np.array(mi.traverse(ours)['data']).reshape(-1, 3), want)
     captured = capfd.readouterr()
     log = captured.out + captured.err
     assert '3 non-finite texel value(s) replaced by 0' in log
