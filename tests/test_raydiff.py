@@ -360,7 +360,7 @@ def test_after_specular_drops_what_pbrt_drops():
 def test_ray_differential_footprint_only_on_active_lanes_with_a_valid_differential():
     """``RayDiff.footprint``: the offsets on the tangent plane (here, rays along -z hitting z = 0:
     the offset rays' in-plane origins, exactly) where the lane is active and the differential
-    valid; elsewhere (inactive, or no valid differential) zero and not ok."""
+    valid; elsewhere (inactive, or no valid differential, or none at all) zero and not ok."""
     o_x, o_y = mi.Point3f(0.25, 0, 1), mi.Point3f(0, -0.5, 1)
     d = mi.Vector3f(0, 0, -1)
     active, valid = np.array([1, 1, 0, 0], bool), np.array([1, 0, 1, 0], bool)
@@ -369,3 +369,8 @@ def test_ray_differential_footprint_only_on_active_lanes_with_a_valid_differenti
     np.testing.assert_array_equal(A(ok), [True, False, False, False])
     np.testing.assert_array_equal(A(dpdx), [[0.25, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
     np.testing.assert_array_equal(A(dpdy), [[0, -0.5, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    # the differential of a camera ray without one (``RayDiff()``) is not valid: no footprint
+    none = raydiff.RayDiff()
+    assert not A(none.valid).any()
+    dpdx, dpdy, ok = none.footprint(mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1), mi.Bool(True))
+    assert not A(ok).any() and not A(dpdx).any() and not A(dpdy).any()
