@@ -2,8 +2,8 @@
 
 Sources:
 
-* OpenEXR files through the ``OpenEXR`` package (channels ``R,G,B[,A]`` or ``Y[,A]``; half and
-  float pixels become float32 exactly).
+* OpenEXR files through the ``OpenEXR`` package (channels ``R,G,B[,A]`` or ``Y[,A]``, other
+  channels ignored; half and float pixels become float32 exactly, also mixed in one file).
 * Every other format Mitsuba reads (PNG, JPEG, HDR, PFM, PPM, TGA, BMP, ...) through ``mi.Bitmap``.
 
 Channels: 1 (``Y``/``YA``) or 3 (``RGB``/``RGBA``/``XYZ``...). Alpha is dropped, as Mitsuba's
@@ -143,8 +143,13 @@ def _read_exr(path: str) -> np.ndarray:
     try:
         # interleaved first: RGB(A) comes as one (H, W, 3|4) array, without the copy that
         # stacking separate planes costs (the image's size again, at the peak of a load)
-        with OpenEXR.File(path) as f:
-            channels = {name: ch.pixels for name, ch in f.channels().items()}
+        try:
+            with OpenEXR.File(path) as f:
+                channels = {name: ch.pixels for name, ch in f.channels().items()}
+        except ValueError:
+            # channels of one group with different pixel types (float RGB with a half A, say)
+            # cannot be interleaved: read them one by one below
+            channels = {}
         for name in ('RGB', 'RGBA'):
             if name in channels:
                 return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)

@@ -2,7 +2,11 @@
 
 import contextlib
 import gc
+import glob
+import hashlib
+import inspect
 import os
+import sys
 
 import pytest
 
@@ -77,6 +81,41 @@ def wavefront_mode(enabled=True):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+#: A folder for slow numpy references (set by ``tests/mutate.sh``, which runs a test once per
+#: mutant); unset, every reference is computed afresh.
+REFERENCE_CACHE = os.environ.get('MITSUBA_PBRT_TEX_REFERENCE_CACHE')
+
+
+def numpy_reference(fn, *inputs):
+    """``fn(*inputs)`` as a float64 array: a reference computed by numpy from the test's inputs
+    alone (``fn`` must not call the package). With ``REFERENCE_CACHE`` set, the result is kept
+    there under a hash of the inputs, ``fn``'s name and the source of ``fn``'s module and of
+    every ``tests/reference_*.py`` helper, so a mutation run computes each slow reference once
+    (in its first, unmutated pass) and a mutant of the package cannot change it."""
+    if not REFERENCE_CACHE:
+        return np.asarray(fn(*inputs), np.float64)
+    h = hashlib.sha256(fn.__qualname__.encode())
+    sources = [inspect.getsourcefile(sys.modules[fn.__module__])]
+    sources += sorted(glob.glob(os.path.join(os.path.dirname(__file__), 'reference_*.py')))
+    for path in sources:
+        with open(path, 'rb') as f:
+            h.update(f.read())
+    for a in inputs:
+        a = np.ascontiguousarray(a)
+        h.update(f'{a.dtype}{a.shape}'.encode())
+        h.update(a.tobytes())
+    path = os.path.join(REFERENCE_CACHE, h.hexdigest() + '.npy')
+    if os.path.exists(path):
+        return np.load(path)
+    out = np.asarray(fn(*inputs), np.float64)
+    os.makedirs(REFERENCE_CACHE, exist_ok=True)
+    tmp = f'{path}.{os.getpid()}.tmp'
+    with open(tmp, 'wb') as f:
+        np.save(f, out)
+    os.replace(tmp, path)
+    return out
 
 
 def adam_steps(load_scene, key, steps, frozen, spp=4):

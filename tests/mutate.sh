@@ -16,6 +16,9 @@
 # MUTATE_TIMEOUT_CONSTANT, default 60) × MUTATE_TIMEOUT_MULTIPLIER (default 4) seconds of wall
 # time, counted from the mutant's fork (so the constant must cover importing Mitsuba and
 # compiling the mutated kernels).
+# Slow numpy references that tests compute through conftest.numpy_reference are kept in
+# $DIR/reference-cache (MITSUBA_PBRT_TEX_REFERENCE_CACHE): computed once, in mutmut's first,
+# unmutated pass, keyed by the test's inputs and the reference code, never by the package.
 # Dr.Jit's thread pool does not survive fork(): mutmut forks its workers from a fork server that
 # imports nothing (forkserver_warmup = none), so each mutant imports mitsuba afresh.
 set -euo pipefail
@@ -58,5 +61,6 @@ esac
   echo "    scenes"
 } > setup.cfg
 rm -f pyproject.toml.bak
+export MITSUBA_PBRT_TEX_REFERENCE_CACHE="${MITSUBA_PBRT_TEX_REFERENCE_CACHE:-$DIR/reference-cache}"
 nice -n 15 "$ROOT/.venv/bin/mutmut" run --max-children 1 ${MUTANTS:-} || true
 "$ROOT/.venv/bin/mutmut" results --all true 2>/dev/null || "$ROOT/.venv/bin/mutmut" results

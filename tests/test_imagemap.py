@@ -1,6 +1,7 @@
 """pbrt_imagemap: parity with Mitsuba's bitmap, filters against independent numpy references,
 hard cases, errors, encodings, caching."""
 
+import gc
 import math
 import os
 import threading
@@ -437,6 +438,66 @@ def test_file_pyramid_shared_and_built_once_across_threads():
     assert A(texs[0].eval_1(si))[0] == 0 and A(texs[1].eval_1(si))[0] > 0
 
 
+def test_files_read_records_every_image_file_textures_read(tmp_path):
+    """``files_read()`` (which the command line uses to refuse outputs that would overwrite an
+    input) collects the real path of each image file a texture reads, cached or not — here
+    through a symbolic link, and twice — and nothing outside its block."""
+    from mitsuba_pbrt_tex.image import files_read
+    image_cache.clear()
+    path = os.path.join(DATA, 'srgb_11x9.png')
+    link = str(tmp_path / 'link.png')
+    os.symlink(path, link)
+    with files_read() as found:
+        a = mi.load_dict({'type': 'pbrt_imagemap', 'filename': link})
+        b = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})      # cached
+    assert found == {os.path.realpath(path)}
+    c = mi.load_dict({'type': 'pbrt_imagemap', 'filename': os.path.join(DATA, 'gray_8x6.png')})
+    assert found == {os.path.realpath(path)}
+    del a, b, c
+
+
+def test_file_pyramids_are_built_once_and_served_to_later_textures(monkeypatch):
+    """A file's pyramid is built on the first request and every later texture of the file gets
+    that one: three bilinear textures (level 0 alone), two trilinear ones (every level), one
+    more bilinear one (served by the complete pyramid) build two pyramids in all — counted by
+    wrapping the package's ``build_pyramid`` — and share them."""
+    import mitsuba_pbrt_tex.image as image
+    calls, real = [], image.build_pyramid
+
+    def counting(tensor, levels):
+        calls.append(levels)
+        return real(tensor, levels)
+
+    monkeypatch.setattr(image, 'build_pyramid', counting)
+    image_cache.clear()
+    path = os.path.join(DATA, 'rgb_13x17.exr')
+
+    def load(filt):
+        return mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': filt})
+
+    bil = [load('bilinear') for _ in range(3)]
+    assert calls == [False] and len({id(t.pyramid) for t in bil}) == 1
+    tri = [load('trilinear') for _ in range(2)]
+    assert calls == [False, True] and tri[0].pyramid is tri[1].pyramid
+    late = load('bilinear')
+    assert calls == [False, True] and late.pyramid is tri[0].pyramid
+
+
+def test_cache_forgets_a_file_when_its_last_texture_dies(tmp_path):
+    """The cache holds decoded files weakly and drops a file's entry as its last texture dies,
+    by itself: edited versions of a file loaded over a long session leave no entries behind.
+    (The stored entries are read directly: ``len()`` and lookups would prune dead ones.)"""
+    from mitsuba_pbrt_tex.outputs import write_exr
+    image_cache.clear()
+    path = str(tmp_path / 'img.exr')
+    write_exr(path, np.random.default_rng(2).random((4, 5, 3)).astype(np.float32))
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    assert len(image_cache._entries) == 1
+    del tex
+    gc.collect()
+    assert len(image_cache._entries) == 0
+
+
 def test_scene_with_identical_textures_loads_in_parallel():
     """Eight textures of one file built on Mitsuba's worker threads. The load runs on a daemon
     thread that must finish within 120 s (it takes < 1 s): a deadlock fails the test instead of
@@ -635,6 +696,79 @@ def test_bitmap_parameter_matches_mitsuba_bitmap(kind, rng):
     si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
     np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
     np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=1e-6)
+
+
+def _bitmap_of_kind(kind, rng, h, w):
+    """An ``mi.Bitmap`` the user might build: pixel format, component type, sRGB flag."""
+    PF = mi.Bitmap.PixelFormat
+    fmt, comp, srgb = kind.split('_')
+    channels = {'y': 1, 'ya': 2, 'rgb': 3, 'rgba': 4, 'xyz': 3}[fmt]
+    if comp in ('u8', 'u16', 'u32'):
+        bits = int(comp[1:])
+        px = rng.integers(0, 2**bits, (h, w, channels), dtype=np.uint64).astype(f'uint{bits}')
+    else:
+        px = rng.uniform(0.0, 1.0, (h, w, channels)).astype({'f16': np.float16, 'f32': np.float32}[comp])
+    bmp = mi.Bitmap(px, {'y': PF.Y, 'ya': PF.YA, 'rgb': PF.RGB, 'rgba': PF.RGBA, 'xyz': PF.XYZ}[fmt])
+    bmp.set_srgb_gamma(srgb == 'srgb')
+    return bmp
+
+
+@pytest.mark.parametrize('kind', ['xyz_f32_lin', 'y_f32_lin', 'ya_f32_lin', 'ya_u8_srgb',
+                                  'ya_u16_srgb', 'rgba_f16_lin', 'rgba_f32_lin', 'rgba_u8_srgb',
+                                  'rgba_u16_srgb', 'rgb_f32_srgb', 'rgba_f32_srgb', 'rgb_u32_lin'])
+def test_bitmap_objects_of_every_format_match_mitsuba_bitmap(kind, rng):
+    """The ``bitmap`` parameter with the pixel formats and component types a user's
+    ``mi.Bitmap`` may have — XYZ (converted to RGB), Y/YA, RGBA (alpha dropped), float16/32,
+    8/16/32-bit integers, and float pixels flagged sRGB (which Mitsuba linearises) — equals
+    Mitsuba's ``bitmap`` given the same object, at texel centres and random bilinear lookups
+    (``eval`` and ``eval_1``). ``format = variant`` keeps Mitsuba's texels in float32 (by default
+    it stores integer images as float16, 5e-4 relative). Mitsuba decodes sRGB codes with its
+    rational approximation of the curve (≤ 4.2e-7 from the exact one the package applies to
+    16-bit codes), and float32 rounding of the bilinear weights adds ~1e-7: atol 2e-6, as for
+    16-bit files; the other kinds go through the same ``Bitmap.convert`` and agree to rounding.
+    The wrong conversions are ≥ 1e-3 off (a 16-bit image cut to 8 bits, float texels left in
+    sRGB, XYZ read as RGB, 32-bit codes not normalised) or refused (alpha left in).
+
+    The user's bitmap is theirs: constructing the texture leaves its pixels as they were, and
+    changing them afterwards does not change the texture."""
+    h, w = 5, 7
+    bmp = _bitmap_of_kind(kind, rng, h, w)
+    before, fmt = np.array(bmp, copy=True), bmp.pixel_format()
+    theirs = mi.load_dict({'type': 'bitmap', 'bitmap': bmp, 'format': 'variant'})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp})
+    np.testing.assert_array_equal(np.array(bmp, copy=True), before)
+    assert bmp.pixel_format() == fmt
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
+    got = A(ours.eval(si))
+    np.testing.assert_allclose(got, A(theirs.eval(si)), atol=2e-6)
+    np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=2e-6)
+    view = np.array(bmp, copy=False)            # the user's own pixels, written in place
+    view[...] = 0
+    assert not np.array(bmp, copy=True).any()
+    np.testing.assert_array_equal(A(ours.eval(si)), got)
+
+
+def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitmap(capfd):
+    """A user's float32 RGB bitmap with NaN, ±inf, values beyond ±1e38 (two above, one below)
+    and two exactly at ±1e38: the texture reads 0 for the non-finite texels and ±1e38 for the
+    clamped ones (numpy's ``where``/``clip`` on the same pixels; nearest lookups at texel
+    centres return texels exactly), and warns with the counts (3 non-finite, 3 clamped — the
+    texels at the limits are not clamped), while the bitmap keeps every value it had, NaNs
+    included: the repairs are made on the package's copy. (Mitsuba's ``bitmap`` is no
+    reference here: it keeps the NaNs.)"""
+    px = np.random.default_rng(5).uniform(0, 1, (3, 4, 3)).astype(np.float32)
+    px[0, 0, 0], px[1, 2, 1], px[2, 3, 2], px[2, 1, 0] = np.nan, np.inf, -np.inf, 3e38
+    px[0, 3, 1], px[1, 0, 2], px[2, 2, 1], px[1, 1, 1] = -2e38, 1.5e38, 1e38, -1e38
+    bmp = mi.Bitmap(px, mi.Bitmap.PixelFormat.RGB)
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp, 'filter': 'point'})
+    np.testing.assert_array_equal(np.array(bmp, copy=True), px)    # NaNs compare equal here
+    want = np.clip(np.where(np.isfinite(px), px, 0), -1e38, 1e38).reshape(-1, 3)
+    np.testing.assert_array_equal(A(ours.eval(make_si(_texel_centres(4, 3)))), want)
+    np.testing.assert_array_equal(np.array(mi.traverse(ours)['data']).reshape(-1, 3), want)
+    captured = capfd.readouterr()
+    log = captured.out + captured.err
+    assert '3 non-finite texel value(s) replaced by 0' in log
+    assert '3 texel value(s) beyond ±1e38 clamped' in log
 
 
 # ------------------------------------------------------------------------------------ eval_1_grad
@@ -850,8 +984,59 @@ def test_nonfinite_texels_of_a_file_replaced_with_warning(ext, capfd, rng, tmp_p
     tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
     got = A(tex.eval(make_si(_texel_centres(6, 4)))).reshape(4, 6, 3)
     np.testing.assert_array_equal(got, np.where(np.isfinite(img), img, 0))
+    # the texels the texture exposes (``params['data']``, what an optimisation starts from)
+    # are the repaired ones too, not only what the filters read
+    np.testing.assert_array_equal(np.array(mi.traverse(tex)['data']), np.where(np.isfinite(img), img, 0))
     captured = capfd.readouterr()
     assert '5 non-finite texel value(s) replaced by 0' in captured.out + captured.err
+
+
+def _write_exr_channels(path, channels):
+    import OpenEXR
+    header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
+    with OpenEXR.File(header, channels) as f:
+        f.write(path)
+
+
+@pytest.mark.parametrize('kind', ['RGBA', 'RGBA_half', 'YA'])
+def test_exr_files_with_alpha_match_bitmap(kind, rng, tmp_path):
+    """OpenEXR files with an alpha channel (float and half) and luminance with alpha: the
+    texture is Mitsuba's ``bitmap`` of the same file with ``format = variant`` (float32 texels,
+    alpha dropped as ``bitmap`` drops it), at texel centres and random bilinear lookups. Both
+    read the same float texels and filter them alike: atol 1e-6 (float32 rounding of the
+    bilinear weights). Alpha taken as a colour channel is refused (4 channels)."""
+    h, w = 5, 6
+    dtype = np.float16 if kind.endswith('half') else np.float32
+    plane = lambda: rng.uniform(0, 1, (h, w)).astype(dtype)
+    names = {'RGBA': 'RGBA', 'RGBA_half': 'RGBA', 'YA': 'YA'}[kind]
+    path = str(tmp_path / 'img.exr')
+    _write_exr_channels(path, {n: plane() for n in names})
+    theirs = mi.load_dict({'type': 'bitmap', 'filename': path, 'format': 'variant'})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
+    np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
+
+
+@pytest.mark.parametrize('types', ['float_rgb_half_a', 'half_r_float_gb', 'rgb_and_depth'])
+def test_exr_files_mixing_channel_types_or_with_depth_load_exactly(types, rng, tmp_path):
+    """An OpenEXR file whose R, G, B (and A) channels do not share one pixel type — float colour
+    with a half alpha, say — is valid; the OpenEXR package cannot interleave such channels, and
+    the texture reads them one by one. A file with a depth channel Z next to R, G, B: the colour
+    channels. Reference: the planes written (half values are float32 values exactly), by point
+    lookups at texel centres, exact. (Mitsuba's ``bitmap`` is no reference here: it stores the
+    first image as half floats and refuses the second.)"""
+    h, w = 4, 5
+    f32, f16 = np.float32, np.float16
+    kinds = {'float_rgb_half_a': dict(R=f32, G=f32, B=f32, A=f16),
+             'half_r_float_gb': dict(R=f16, G=f32, B=f32),
+             'rgb_and_depth': dict(R=f32, G=f32, B=f32, Z=f32)}[types]
+    planes = {n: rng.uniform(0, 1, (h, w)).astype(t) for n, t in kinds.items()}
+    path = str(tmp_path / 'mixed.exr')
+    _write_exr_channels(path, dict(planes))     # (the writer replaces the dict's values)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'point'})
+    got = A(tex.eval(make_si(_texel_centres(w, h)))).reshape(h, w, 3)
+    want = np.stack([planes[n].astype(np.float32) for n in 'RGB'], -1)
+    np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize('shape', [(1, 7), (5, 1), (1, 1)])

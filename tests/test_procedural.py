@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import reference_noise as rn
-from conftest import A, make_si
+from conftest import A, make_si, numpy_reference
 from mitsuba_pbrt_tex import noise as noise_lib
 
 LUM = np.array([0.212671, 0.715160, 0.072169])
@@ -201,6 +201,12 @@ def checker_reference(coords, widths, kernel):
     return 0.5 - 0.5 * prod
 
 
+def checker_references(coords, widths, triangle):
+    """``checker_reference`` of each lane (rows of ``coords``, ``widths``)."""
+    kernel = 'triangle' if triangle else 'box'
+    return [checker_reference(x, r, kernel) for x, r in zip(coords, widths)]
+
+
 @pytest.mark.parametrize('aamode', ['box', 'closedform', 'triangle'])
 @pytest.mark.parametrize('dimension', [2, 3])
 def test_checkerboard_against_quadrature(aamode, dimension, rng):
@@ -214,13 +220,9 @@ def test_checkerboard_against_quadrature(aamode, dimension, rng):
                         'tex1': 0.0, 'tex2': 1.0})
     si = solid_si(p, dpdx, dpdy)
     got = A(tex.eval_1(si))
-    kernel = 'triangle' if aamode == 'triangle' else 'box'
-    want = []
-    for k in range(n):
-        axes = 2 if dimension == 2 else 3
-        coords = p[k, :axes]
-        widths = np.maximum(np.abs(dpdx[k, :axes]), np.abs(dpdy[k, :axes]))
-        want.append(checker_reference(coords, widths, kernel))
+    axes = 2 if dimension == 2 else 3
+    widths = np.maximum(np.abs(dpdx[:, :axes]), np.abs(dpdy[:, :axes]))
+    want = numpy_reference(checker_references, p[:, :axes], widths, np.array(aamode == 'triangle'))
     assert np.isfinite(got).all()
     np.testing.assert_allclose(got, want, atol=1e-4)
 
@@ -286,6 +288,11 @@ def checker_area_reference(c, d0, d1):
     return 0.5 - 0.5 * acc / abs(_area(quad))
 
 
+def checker_area_references(c, d0, d1):
+    """``checker_area_reference`` of each lane."""
+    return [checker_area_reference(*lane) for lane in zip(c, d0, d1)]
+
+
 def test_checkerboard_area_is_the_exact_parallelogram_average(rng):
     """``aamode="area"``: the average over the footprint parallelogram, against polygon clipping.
     Random orientations, footprints from 1/1000 of a cell to 15 cells across the shorter axis,
@@ -306,7 +313,7 @@ def test_checkerboard_area_is_the_exact_parallelogram_average(rng):
     d0[swap], d1[swap] = d1[swap].copy(), d0[swap].copy()
     tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', 'tex1': 0.0, 'tex2': 1.0})
     got = A(tex.eval_1(make_si(c, d0, d1)))
-    want = np.array([checker_area_reference(c[k], d0[k], d1[k]) for k in range(n)])
+    want = numpy_reference(checker_area_references, c, d0, d1)
     # footprints wider than the package's row limit fall back to the box closed form
     from mitsuba_pbrt_tex.checker import AREA_MAX_ROWS
     rows = np.minimum(np.abs(d0[:, 0]) + np.abs(d1[:, 0]), np.abs(d0[:, 1]) + np.abs(d1[:, 1]))
@@ -343,8 +350,8 @@ def test_supersample_converges_to_box_integral(rng):
     uv = f32(rng.uniform(-5, 5, (n, 2)))
     dx = np.stack([rng.uniform(0.2, 0.9, n), np.zeros(n)], 1)
     dy = np.stack([np.zeros(n), rng.uniform(0.2, 0.9, n)], 1)
-    exact = np.array([checker_reference(uv[k], [dx[k, 0] / 2, dy[k, 1] / 2], 'box')
-                      for k in range(n)])
+    exact = numpy_reference(checker_references, uv, np.stack([dx[:, 0], dy[:, 1]], 1) / 2,
+                            np.array(False))
     errors = []
     for samples in (4, 64, 1024):
         tex = mi.load_dict({'type': 'pbrt_supersample', 'samples': samples,

@@ -1,6 +1,7 @@
 """Ray-differential math of pbrt_path against finite differences and closed forms."""
 
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -223,3 +224,153 @@ def test_camera_approximation_scales_with_spp_factor(rng):
     (tx, ty), (ax, ay), _, keep = _true_and_approx_footprints(30, 32, 24, 0.25, rng)
     ratio = (_size((ax, ay)) / _size((tx, ty)))[keep] / 0.25
     assert ratio.min() > 0.85 and ratio.max() < 1.10, (ratio.min(), ratio.max())
+
+
+# ------------------------------------------------------------------------------------ RayDiff
+def _specular_case(rng, count, kind):
+    """Hits with a curved shading normal (dn/du, dn/dv ⟂ n) and an incoming ray differential:
+    ``kind`` 'reflect', 'refract_in' (entering glass, η = 1.5) or 'refract_out' (leaving it:
+    wo below the normal, Mitsuba's bs.eta = 1/1.5)."""
+    n = normalize(rng.normal(size=(count, 3)) * [0.3, 0.3, 1] + [0, 0, 2])
+    # leaving glass: within 1/4 radian or so of the normal, far from total internal reflection
+    wo = normalize(n * (4.0 if kind == 'refract_out' else 2.0) + rng.normal(size=(count, 3)) * 0.5)
+    if kind == 'refract_out':
+        wo = wo - 2 * (wo * n).sum(-1, keepdims=True) * n          # mirrored below the surface
+    def perp(v):                                                    # random vectors ⟂ n
+        return v - (v * n).sum(-1, keepdims=True) * n
+    dn_du, dn_dv = perp(rng.normal(size=(count, 3)) * 0.6), perp(rng.normal(size=(count, 3)) * 0.6)
+    duv_dx, duv_dy = rng.normal(size=(count, 2)) * 0.05, rng.normal(size=(count, 2)) * 0.05
+    d = -wo
+    # offset rays' directions d + δ with δ ⟂ d, so that dwo/dx = -δ is the derivative of the
+    # unit direction (a normalised d + δ would add an O(δ²) part along d that the first-order
+    # propagation, as pbrt's, carries along and the reference below does not)
+    def perp_d(v):
+        return v - (v * d).sum(-1, keepdims=True) * d
+    d_x = d + perp_d(rng.normal(size=(count, 3))) * 0.01
+    d_y = d + perp_d(rng.normal(size=(count, 3))) * 0.01
+    p = rng.normal(size=(count, 3))
+    dpdx, dpdy = perp(rng.normal(size=(count, 3))) * 0.01, perp(rng.normal(size=(count, 3))) * 0.01
+    return dict(n=n, wo=wo, dn_du=dn_du, dn_dv=dn_dv, duv_dx=duv_dx, duv_dy=duv_dy, d_x=d_x,
+                d_y=d_y, p=p, dpdx=dpdx, dpdy=dpdy)
+
+
+def _after_specular(c, kind, sampled_type=None, t=None, valid=None):
+    """``RayDiff.after_specular`` on the case ``c`` (the main ray's exact outgoing direction)."""
+    count = len(c['n'])
+    eta = {'reflect': 1.0, 'refract_in': 1.5, 'refract_out': 1 / 1.5}[kind]
+    wi = _exact_direction(c['wo'], c['n'], kind)
+    si = dr.zeros(mi.SurfaceInteraction3f, count)
+    si.t = mi.Float(np.ones(count) if t is None else t)
+    si.p, si.n = mi.Point3f(V(c['p'])), mi.Normal3f(V(c['n']))
+    si.sh_frame = mi.Frame3f(V(c['n']))
+    si.wi = si.sh_frame.to_local(V(c['wo']))
+    si.duv_dx = mi.Vector2f(c['duv_dx'][:, 0], c['duv_dx'][:, 1])
+    si.duv_dy = mi.Vector2f(c['duv_dy'][:, 0], c['duv_dy'][:, 1])
+    si.dn_du, si.dn_dv = V(c['dn_du']), V(c['dn_dv'])
+    bs = dr.zeros(mi.BSDFSample3f, count)
+    flag = int(mi.BSDFFlags.DeltaReflection if kind == 'reflect' else mi.BSDFFlags.DeltaTransmission)
+    bs.sampled_type = mi.UInt32(np.full(count, flag) if sampled_type is None else sampled_type)
+    bs.eta = mi.Float(np.full(count, eta))
+    o = c['p'] - c['wo']                                      # the rays came from 1 unit away
+    diff = raydiff.RayDiff(mi.Point3f(V(o)), V(c['d_x']), mi.Point3f(V(o)), V(c['d_y']),
+                           mi.Bool(np.ones(count, bool) if valid is None else valid))
+    out = diff.after_specular(si, bs, V(wi), mi.Point3f(V(c['p'])), V(c['dpdx']), V(c['dpdy']))
+    return [A(v) for v in out.fields()], wi, o
+
+
+def _exact_direction(wo, n, kind):
+    if kind == 'reflect':
+        return reflect(wo, n)
+    if kind == 'refract_in':
+        return refract(wo, n, 1.5)
+    return refract(wo, -n, 1 / 1.5)
+
+
+@pytest.mark.parametrize('kind', ['reflect', 'refract_in', 'refract_out'])
+def test_after_specular_offsets_follow_the_exact_direction_of_the_offset_rays(kind, rng):
+    """``RayDiff.after_specular`` — what ``pbrt_path`` does at a mirror or glass hit — on curved
+    surfaces (shading-normal derivatives dn/du, dn/dv combined with du/dx, dv/dx …), reflecting,
+    entering and leaving glass (from below the normal: n flipped): the new offset directions are
+    the exact outgoing direction plus its derivative along each offset, the derivative taken by
+    central differences of the exact reflection/refraction (numpy) of wo(s) = normalize(wo +
+    s·dwo/dx) about n(s) = normalize(n + s·dn/dx), dwo/dx = -(d_x - d) from the incoming offset
+    ray; the new origins are the spawned origin plus dp/dx, dp/dy; every lane stays valid.
+    h = 1e-4 (truncation ~h² · |d³wi| ≲ 1e-7) and float32 directions: atol 1e-4."""
+    c = _specular_case(rng, 300, kind)
+    (o_x, d_x, o_y, d_y, valid), wi, _ = _after_specular(c, kind)
+    n = c['n'] if kind != 'refract_out' else -c['n']
+    sign = 1 if kind != 'refract_out' else -1
+    h = 1e-4
+    for axis, got_o, got_d in (('x', o_x, d_x), ('y', o_y, d_y)):
+        duv = c[f'duv_d{axis}']
+        dndx = sign * (c['dn_du'] * duv[:, :1] + c['dn_dv'] * duv[:, 1:])
+        dwo = -(c[f'd_{axis}'] - (-c['wo']))
+
+        def direction(s):
+            return _exact_direction(normalize(c['wo'] + s * dwo),
+                                    sign * normalize(n + s * dndx), kind)
+
+        want = wi + (direction(h) - direction(-h)) / (2 * h)
+        assert np.isfinite(want).all()
+        np.testing.assert_allclose(got_d, want, atol=1e-4)
+        np.testing.assert_allclose(got_o, c['p'] + c[f'dp{"d" + axis}'], atol=1e-5)
+    assert valid.all()
+
+
+def test_after_specular_drops_what_pbrt_drops():
+    """Lanes where pbrt-v4's ``SpawnRay`` gives up the differential keep the old rays and become
+    invalid: an offset direction or origin of squared length beyond 1e16 (each of the four
+    alone), a non-finite offset direction (each alone), a sampled lobe that is not specular, a
+    missed surface (t = ∞), an incoming differential that was not valid. Origins of squared
+    length exactly 1e16 (1e8 in float32, squared) are kept (pbrt: ``> 1e16``). A dropped
+    differential (``dropped()``) is invalid with its rays unchanged."""
+    rng = np.random.default_rng(7)
+    c = _specular_case(rng, 10, 'reflect')
+    c['duv_dx'][:], c['duv_dy'][:] = [0.1, 0.0], [0.0, 0.1]
+    c['dn_dv'][:] = 0
+    nan = float('nan')
+    c['dn_du'][0] *= 1e10                                        # 0: rx beyond 1e16 only
+    c['dn_dv'][1] = c['dn_du'][1] * 1e10                          # 1: ry beyond 1e16 only
+    c['dpdx'][2] = [2e8, 0, 0]                                    # 2: o_x beyond only
+    c['dpdy'][3] = [0, 2e8, 0]                                    # 3: o_y beyond only
+    c['duv_dx'][4] = [nan, 0]                                     # 4: rx NaN only
+    c['duv_dy'][5] = [0, nan]                                     # 5: ry NaN only
+    c['p'][9], c['dpdx'][9], c['dpdy'][9] = 0, [1e8, 0, 0], [0, 1e8, 0]   # 9: |o|² = 1e16
+    sampled = np.full(10, int(mi.BSDFFlags.DeltaReflection))
+    sampled[6] = int(mi.BSDFFlags.DiffuseReflection)              # 6: not specular
+    t = np.ones(10)
+    t[7] = np.inf                                                 # 7: no surface
+    valid_in = np.ones(10, bool)
+    valid_in[8] = False                                           # 8: nothing to propagate
+    (o_x, d_x, o_y, d_y, valid), wi, o = _after_specular(c, 'reflect', sampled, t, valid_in)
+    dropped = np.arange(10) < 9
+    np.testing.assert_array_equal(valid, ~dropped)
+    for got, old in ((o_x, o), (o_y, o), (d_x, c['d_x']), (d_y, c['d_y'])):
+        np.testing.assert_allclose(got[dropped], old[dropped], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(o_x[9], [1e8, 0, 0], rtol=1e-6)
+    np.testing.assert_allclose(o_y[9], [0, 1e8, 0], rtol=1e-6)
+    rays = raydiff.RayDiff(mi.Point3f(1, 2, 3), mi.Vector3f(0, 0, 1), mi.Point3f(4, 5, 6),
+                           mi.Vector3f(0, 1, 0), mi.Bool(True))
+    gone = [A(v) for v in rays.dropped().fields()]
+    assert not gone[4].any()
+    for got, want in zip(gone[:4], ([1, 2, 3], [0, 0, 1], [4, 5, 6], [0, 1, 0])):
+        np.testing.assert_array_equal(got.reshape(-1, 3)[0], want)
+
+
+def test_ray_differential_footprint_only_on_active_lanes_with_a_valid_differential():
+    """``RayDiff.footprint``: the offsets on the tangent plane (here, rays along -z hitting z = 0:
+    the offset rays' in-plane origins, exactly) where the lane is active and the differential
+    valid; elsewhere (inactive, or no valid differential, or none at all) zero and not ok."""
+    o_x, o_y = mi.Point3f(0.25, 0, 1), mi.Point3f(0, -0.5, 1)
+    d = mi.Vector3f(0, 0, -1)
+    active, valid = np.array([1, 1, 0, 0], bool), np.array([1, 0, 1, 0], bool)
+    rays = raydiff.RayDiff(o_x, d, o_y, d, mi.Bool(valid))
+    dpdx, dpdy, ok = rays.footprint(mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1), mi.Bool(active))
+    np.testing.assert_array_equal(A(ok), [True, False, False, False])
+    np.testing.assert_array_equal(A(dpdx), [[0.25, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    np.testing.assert_array_equal(A(dpdy), [[0, -0.5, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    # the differential of a camera ray without one (``RayDiff()``) is not valid: no footprint
+    none = raydiff.RayDiff()
+    assert not A(none.valid).any()
+    dpdx, dpdy, ok = none.footprint(mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1), mi.Bool(True))
+    assert not A(ok).any() and not A(dpdx).any() and not A(dpdy).any()
