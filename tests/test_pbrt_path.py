@@ -388,3 +388,28 @@ def test_spp_scale_as_an_integer_is_a_number():
     two = partials(2)
     np.testing.assert_array_equal(two, partials(2.0))
     assert np.abs(two - partials(1.0)).max() > 1e-3
+
+
+def test_set_total_spp_sets_the_footprint_scale():
+    """``set_total_spp(n)`` (the command line's render in passes) makes the footprint that of n
+    spp whatever the spp of each ``mi.render``: pbrt-v4's scale max(1/8, 1/√spp) is 1/8 for 64
+    spp, so a 4-spp render under ``set_total_spp(64)`` has the uv partials of the numeric
+    ``spp_scale`` 0.125 (same seed, same rays: exactly), not those of 4 spp (scale 1/2, partials
+    ~4× larger); ``set_total_spp(None)`` goes back to the render's spp (scale 1/2) exactly."""
+    def scene(**integrator):
+        return mi.load_dict({
+            'type': 'scene', 'sensor': camera([0, 2, 4], [0, 0, 0], 16, 16),
+            'integrator': {'type': 'pbrt_path', 'aovs': 'duv_dx,duv_dy', **integrator},
+            'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(5),
+                      'bsdf': {'type': 'diffuse', 'reflectance': {'type': 'pbrt_checkerboard'}}}})
+
+    def partials(s):
+        return np.array(mi.render(s, spp=4, seed=2))[..., 3:7]
+
+    eighth, half = partials(scene(spp_scale=0.125)), partials(scene(spp_scale=0.5))
+    assert np.abs(half).mean() > 3 * np.abs(eighth).mean()
+    ours = scene()
+    ours.integrator().set_total_spp(64)
+    np.testing.assert_array_equal(partials(ours), eighth)
+    ours.integrator().set_total_spp(None)
+    np.testing.assert_array_equal(partials(ours), half)
