@@ -6,6 +6,7 @@ integration of the bilinear texture; 1-spp renders equal between seeds on interi
 Gaussian-weighted reference (Mitsuba's ``path`` + ``bitmap`` with the Gaussian film); errors;
 texel gradients against finite differences."""
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -310,3 +311,59 @@ def test_texel_gradients_through_gaussian_pixel_footprint(forward, rng):
     d['sensor']['film'].update(width=tg.RES, height=tg.RES)
     d['integrator']['max_depth'] = 3
     tg.check_gradient(mi.load_dict(d), 'plane.bsdf.reflectance.data', rng, forward=forward)
+
+
+# ------------------------------------------------------------------ found by mutation testing
+def test_second_sensor_counts_samples_in_its_own_pixels(rng):
+    """``mi.render(scene, sensor=1)`` with the Gaussian film: samples are decoded to pixels of
+    the sensor rendered (its film positions, its projection), so two 1-spp renders of that
+    sensor agree on interior pixels as with a single sensor (< 1e-4, float32 rounding);
+    decoding through the scene's first sensor (elsewhere, another film) counts them in wrong
+    pixels or none."""
+    from test_pixel_footprint import two_sensor_scene
+    tex = box_texture(rng)
+    scene = mi.load_dict(two_sensor_scene(tex, rfilter='gaussian'))
+    mask = gaussian_interior(mi.load_dict(scene_dict(tex, rfilter='gaussian')))
+    a, b = [np.array(mi.render(scene, sensor=1, spp=1, seed=s)) for s in (1, 2)]
+    assert a.shape[:2] == (RES[1], RES[0]) and mask.sum() > 60
+    assert np.abs(a - b)[mask].max() < 1e-4
+
+
+def test_direct_render_forward_and_backward_draw_the_render_seeds_offsets(rng):
+    """The integrator's own ``render_forward``/``render_backward`` (Mitsuba's entry points, here
+    called directly with a seed) use the film offsets of that seed, as ``render`` does. With
+    direct light only (max_depth 2, one diffuse plane) the image is linear in the texels, so
+    the forward derivative along the texels themselves is the image of the same seed, and
+    Σ texels·(backward gradient of Σ w·image) = Σ w·image — equal up to float32 rounding of
+    the derivative's sums (rtol 1e-4, atol 1e-6). The offsets of another seed put every
+    sample elsewhere (~0.05 per pixel)."""
+    texels = rng.random((16, 16, 3)).astype(np.float32)
+
+    def load():          # a fresh tensor per scene: no gradient state carried between modes
+        return mi.load_dict(scene_dict({'type': 'pbrt_imagemap', 'filter': 'box',
+                                        'data': mi.TensorXf(texels), 'uscale': 3.0,
+                                        'vscale': 3.0}, rfilter='gaussian', second_bsdf=False))
+
+    key, seed = 'plane.bsdf.reflectance.data', 5
+    scene = load()
+    integrator = scene.integrator()
+    image = np.array(integrator.render(scene, seed=seed, spp=2))
+    assert image.mean() > 0.05
+    other = np.array(integrator.render(scene, seed=seed + 1, spp=2))
+    assert np.abs(other - image).max() > 1e-2          # the seed matters
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    dr.set_grad(params[key], mi.TensorXf(texels))
+    dr.enqueue(dr.ADMode.Forward, params[key])
+    dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+    forward = np.array(integrator.render_forward(scene, params, seed=seed, spp=2))
+    np.testing.assert_allclose(forward, image, rtol=1e-4, atol=1e-6)
+    scene = load()
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    w = rng.random(image.shape).astype(np.float32)
+    scene.integrator().render_backward(scene, params, mi.TensorXf(w), seed=seed, spp=2)
+    g = np.array(dr.grad(params[key]), dtype=np.float64)
+    assert (g * texels).sum() == pytest.approx((w * image).sum(), rel=1e-4)
