@@ -367,3 +367,23 @@ def test_direct_render_forward_and_backward_draw_the_render_seeds_offsets(rng):
     scene.integrator().render_backward(scene, params, mi.TensorXf(w), seed=seed, spp=2)
     g = np.array(dr.grad(params[key]), dtype=np.float64)
     assert (g * texels).sum() == pytest.approx((w * image).sum(), rel=1e-4)
+
+
+def test_crop_window_counts_samples_in_their_pixels(rng):
+    """A film with a crop window: pixels keep their full-film coordinates (Mitsuba's
+    ``crop_offset``), so an interior pixel of the window has the value it has in the uncropped
+    render — the filter-weighted texture average, the same for every sample — up to float32
+    rounding (< 1e-4, as between seeds). Counting a sample at a pixel off by the window's
+    offset drops it or moves it to another pixel."""
+    tex = box_texture(rng)
+    full_d = scene_dict(tex, rfilter='gaussian')
+    mask = gaussian_interior(mi.load_dict(full_d))
+    (ox, oy), (cw, ch) = (6, 3), (14, 10)
+    crop_d = scene_dict(tex, rfilter='gaussian')
+    crop_d['sensor']['film'].update(crop_offset_x=ox, crop_offset_y=oy, crop_width=cw,
+                                    crop_height=ch)
+    full = np.array(mi.render(mi.load_dict(full_d), spp=1, seed=1))
+    crop = np.array(mi.render(mi.load_dict(crop_d), spp=1, seed=2))
+    window = mask[oy:oy + ch, ox:ox + cw]
+    assert crop.shape[:2] == (ch, cw) and window.sum() > 20
+    assert np.abs(crop - full[oy:oy + ch, ox:ox + cw])[window].max() < 1e-4
