@@ -387,3 +387,28 @@ def test_crop_window_counts_samples_in_their_pixels(rng):
     window = mask[oy:oy + ch, ox:ox + cw]
     assert crop.shape[:2] == (ch, cw) and window.sum() > 20
     assert np.abs(crop - full[oy:oy + ch, ox:ox + cw])[window].max() < 1e-4
+
+
+def test_sample_called_without_render_keeps_the_sample_footprint(rng):
+    """``sample()`` is the interface a user's own render loop calls (Mitsuba's ``prepare``,
+    ``sample_rays``, ``sample``): without ``render()`` the rays are not drawn from the Gaussian
+    filter per pixel, so pixel footprints do not apply and the textures keep the sample's
+    footprint — the radiance equals that of ``footprint="sample"`` on the same rays and random
+    numbers (float32 rounding: rtol 1e-6), and differs from the pixel-centred lookup (which a
+    render gives: the test can fail)."""
+    tex = box_texture(rng)
+    out = {}
+    for footprint in ('pixel', 'sample'):
+        scene = mi.load_dict(scene_dict(tex, footprint=footprint, rfilter='gaussian'))
+        integrator, sensor = scene.integrator(), scene.sensors()[0]
+        sampler, _ = integrator.prepare(sensor, 3, 1, [])
+        ray, _, _ = integrator.sample_rays(scene, sensor, sampler)
+        L, valid, _, _ = integrator.sample(dr.ADMode.Primal, scene, sampler, ray, None, None,
+                                           mi.Bool(True))
+        out[footprint] = np.array(L), np.array(valid)
+    assert out['pixel'][1].mean() > 0.5
+    np.testing.assert_allclose(out['pixel'][0], out['sample'][0], rtol=1e-6, atol=1e-7)
+    pixel = np.array(mi.render(mi.load_dict(scene_dict(tex, rfilter='gaussian')), spp=1, seed=3))
+    sample = np.array(mi.render(mi.load_dict(scene_dict(tex, footprint='sample',
+                                                        rfilter='gaussian')), spp=1, seed=3))
+    assert np.abs(pixel - sample).max() > 1e-2

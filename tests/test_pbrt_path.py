@@ -486,10 +486,11 @@ def test_geometry_gradients_match_prb():
     incident direction re-attached to the previous hit (prb's interior derivative; the
     boundary term is neither's): backward gradients of Σ w·image with respect to the Cornell
     box's red wall and light transforms, with glossy walls (whose value depends on that
-    direction), agree with Mitsuba's ``prb`` (same seeds) to float32
+    direction), and with respect to the light's radiance (the emission seen by BSDF-sampled
+    paths, tracked in the differential phase) agree with Mitsuba's ``prb`` (same seeds) to float32
     rounding of the accumulated sums (rtol 1e-4 of the largest component)."""
     w = mi.TensorXf(np.random.default_rng(4).random((24, 24, 3)).astype(np.float32))
-    keys = ('red-wall.to_world', 'light.to_world')
+    keys = ('red-wall.to_world', 'light.to_world', 'light.emitter.radiance.value')
     grads = {}
     for kind in ('prb', 'pbrt_path'):
         scene = _small_cornell({'type': kind, 'max_depth': 4}, glossy=True)
@@ -500,7 +501,8 @@ def test_geometry_gradients_match_prb():
         params.update()
         image = mi.render(scene, params, spp=4, seed=1, seed_grad=2)
         dr.backward(dr.sum(w * image, axis=None))
-        grads[kind] = [np.array(dr.grad(params[k]).matrix) for k in keys]
+        grads[kind] = [np.array(getattr(dr.grad(params[k]), 'matrix', dr.grad(params[k])))
+                       for k in keys]
     for g, g_p in zip(grads['prb'], grads['pbrt_path']):
         scale = np.abs(g).max()
         assert scale > 1e-3
