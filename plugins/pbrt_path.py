@@ -345,13 +345,13 @@ class Plugin:
         pos.x, pos.y = new.x, new.y
 
     def silhouette_paths(self, scene, sensor, sampler, edge, prep):
-        """Sum of the extra paths of the ``edge`` lanes (0 elsewhere). Outside a symbolic scope
-        (``mi.render`` calls ``sample()`` there) the edge lanes are compacted first — a few
-        percent of the lanes, which a masked loop over all lanes would carry along — and draw
-        from a sampler of their own, seeded from this one."""
+        """Sum of the extra paths of the ``edge`` lanes (0 elsewhere). The edge lanes are
+        compacted first — a few percent of the lanes, which a masked loop over all lanes would
+        carry along — and draw from a sampler of their own, seeded from this one. (Compaction
+        needs ``sample()`` to run outside a symbolic scope: Mitsuba's ``render``,
+        ``render_forward`` and ``render_backward`` call it there, in symbolic and wavefront
+        mode and under ``dr.freeze``.)"""
         pixel_pos = mi.Vector2f(self._pixel_pos)
-        if dr.flag(dr.JitFlag.SymbolicScope):
-            return self.silhouette_samples(scene, sensor, sampler, pixel_pos, edge, prep)
         index = dr.compress(edge)
         count = dr.width(index)
         total = dr.zeros(mi.Spectrum, dr.width(edge))

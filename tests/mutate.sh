@@ -19,6 +19,8 @@
 # Slow numpy references that tests compute through conftest.numpy_reference are kept in
 # $DIR/reference-cache (MITSUBA_PBRT_TEX_REFERENCE_CACHE): computed once, in mutmut's first,
 # unmutated pass, keyed by the test's inputs and the reference code, never by the package.
+# MUTATE_SYNTAX=1 also mutates the module's @dr.syntax functions, which mutmut skips (it skips
+# every decorated function): see below.
 # Dr.Jit's thread pool does not survive fork(): mutmut forks its workers from a fork server that
 # imports nothing (forkserver_warmup = none), so each mutant imports mitsuba afresh.
 set -euo pipefail
@@ -36,6 +38,67 @@ case "$MODULE" in
     cp -r plugins mitsuba_pbrt_tex/plugins
     MUTATE="mitsuba_pbrt_tex/$MODULE" ;;
 esac
+if [ -n "${MUTATE_SYNTAX:-}" ]; then
+  # mutmut 3 skips decorated functions, so the @dr.syntax ones (symbolic loops and
+  # conditionals written as Python while/if) would get no mutants. In the scratch copy the
+  # decorator is removed before mutmut generates the mutants, and a line appended to the module
+  # applies it again, when the module is imported, to the original and every mutant of those
+  # functions (mutmut's `mutants_<name>__mutmut` dicts, which the trampoline dispatches through;
+  # lazily: a mutant is transformed only if it runs). dr.syntax reads the function's source with
+  # inspect, which works on the generated file in mutants/. The mutant names are those of a run
+  # without MUTATE_SYNTAX for the other functions (the decorator line is not a statement).
+  cat > mitsuba_pbrt_tex/_mutate_syntax.py <<'PY'
+"""Written by tests/mutate.sh (MUTATE_SYNTAX=1) into its scratch copy only: @dr.syntax applied
+again to functions whose decorator was removed so that mutmut mutates them."""
+import functools
+
+import drjit as dr
+
+
+def _lazy(fn):
+    done = []
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if not done:
+            done.append(dr.syntax(fn))
+        return done[0](*args, **kwargs)
+    return call
+
+
+def redecorate(scope, names):
+    for name in names:
+        dicts = [v for k, v in scope.items() if k.startswith('mutants_x') and (
+            k.endswith('\u01c1' + name + '__mutmut') or k == 'mutants_x_' + name + '__mutmut')]
+        for d in dicts:                     # mutated: the original and its mutants
+            for key in list(d):
+                d[key] = _lazy(d[key])
+        if dicts:
+            continue
+        for owner in [scope] + [v for v in scope.values() if isinstance(v, type)]:
+            get = owner.get if isinstance(owner, dict) else owner.__dict__.get
+            fn = get(name)
+            if getattr(getattr(fn, '__code__', None), 'co_name', None) == name and \
+                    fn.__module__ == scope['__name__']:
+                if isinstance(owner, dict):
+                    owner[name] = dr.syntax(fn)
+                else:
+                    setattr(owner, name, dr.syntax(fn))
+PY
+  "$ROOT/.venv/bin/python" - "$MUTATE" <<'PY'
+import re, sys
+path = sys.argv[1]
+src = open(path, encoding='utf-8').read()
+pattern = re.compile(r'^[ \t]*@dr\.syntax[ \t]*\n(?=[ \t]*def[ \t]+(\w+))', re.M)
+names = tuple(m.group(1) for m in pattern.finditer(src))
+src = pattern.sub('', src)
+src += ('\n\nfrom mitsuba_pbrt_tex._mutate_syntax import redecorate as _mutate_syntax'
+        '  # pragma: no mutate\n'
+        f'_mutate_syntax(globals(), {names!r})  # pragma: no mutate\n')
+open(path, 'w', encoding='utf-8').write(src)
+print('MUTATE_SYNTAX: mutating', ', '.join(names) or 'nothing (no @dr.syntax function)')
+PY
+fi
 {
   echo "[mutmut]"
   echo "source_paths = mitsuba_pbrt_tex"

@@ -6,6 +6,7 @@ integration of the bilinear texture; 1-spp renders equal between seeds on interi
 Gaussian-weighted reference (Mitsuba's ``path`` + ``bitmap`` with the Gaussian film); errors;
 texel gradients against finite differences."""
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -310,3 +311,104 @@ def test_texel_gradients_through_gaussian_pixel_footprint(forward, rng):
     d['sensor']['film'].update(width=tg.RES, height=tg.RES)
     d['integrator']['max_depth'] = 3
     tg.check_gradient(mi.load_dict(d), 'plane.bsdf.reflectance.data', rng, forward=forward)
+
+
+# ------------------------------------------------------------------ found by mutation testing
+def test_second_sensor_counts_samples_in_its_own_pixels(rng):
+    """``mi.render(scene, sensor=1)`` with the Gaussian film: samples are decoded to pixels of
+    the sensor rendered (its film positions, its projection), so two 1-spp renders of that
+    sensor agree on interior pixels as with a single sensor (< 1e-4, float32 rounding);
+    decoding through the scene's first sensor (elsewhere, another film) counts them in wrong
+    pixels or none."""
+    from test_pixel_footprint import two_sensor_scene
+    tex = box_texture(rng)
+    scene = mi.load_dict(two_sensor_scene(tex, rfilter='gaussian'))
+    mask = gaussian_interior(mi.load_dict(scene_dict(tex, rfilter='gaussian')))
+    a, b = [np.array(mi.render(scene, sensor=1, spp=1, seed=s)) for s in (1, 2)]
+    assert a.shape[:2] == (RES[1], RES[0]) and mask.sum() > 60
+    assert np.abs(a - b)[mask].max() < 1e-4
+
+
+def test_direct_render_forward_and_backward_draw_the_render_seeds_offsets(rng):
+    """The integrator's own ``render_forward``/``render_backward`` (Mitsuba's entry points, here
+    called directly with a seed) use the film offsets of that seed, as ``render`` does. With
+    direct light only (max_depth 2, one diffuse plane) the image is linear in the texels, so
+    the forward derivative along the texels themselves is the image of the same seed, and
+    Σ texels·(backward gradient of Σ w·image) = Σ w·image — equal up to float32 rounding of
+    the derivative's sums (rtol 1e-4, atol 1e-6). The offsets of another seed put every
+    sample elsewhere (~0.05 per pixel)."""
+    texels = rng.random((16, 16, 3)).astype(np.float32)
+
+    def load():          # a fresh tensor per scene: no gradient state carried between modes
+        return mi.load_dict(scene_dict({'type': 'pbrt_imagemap', 'filter': 'box',
+                                        'data': mi.TensorXf(texels), 'uscale': 3.0,
+                                        'vscale': 3.0}, rfilter='gaussian', second_bsdf=False))
+
+    key, seed = 'plane.bsdf.reflectance.data', 5
+    scene = load()
+    integrator = scene.integrator()
+    image = np.array(integrator.render(scene, seed=seed, spp=2))
+    assert image.mean() > 0.05
+    other = np.array(integrator.render(scene, seed=seed + 1, spp=2))
+    assert np.abs(other - image).max() > 1e-2          # the seed matters
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    dr.set_grad(params[key], mi.TensorXf(texels))
+    dr.enqueue(dr.ADMode.Forward, params[key])
+    dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+    forward = np.array(integrator.render_forward(scene, params, seed=seed, spp=2))
+    np.testing.assert_allclose(forward, image, rtol=1e-4, atol=1e-6)
+    scene = load()
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    w = rng.random(image.shape).astype(np.float32)
+    scene.integrator().render_backward(scene, params, mi.TensorXf(w), seed=seed, spp=2)
+    g = np.array(dr.grad(params[key]), dtype=np.float64)
+    assert (g * texels).sum() == pytest.approx((w * image).sum(), rel=1e-4)
+
+
+def test_crop_window_counts_samples_in_their_pixels(rng):
+    """A film with a crop window: pixels keep their full-film coordinates (Mitsuba's
+    ``crop_offset``), so an interior pixel of the window has the value it has in the uncropped
+    render — the filter-weighted texture average, the same for every sample — up to float32
+    rounding (< 1e-4, as between seeds). Counting a sample at a pixel off by the window's
+    offset drops it or moves it to another pixel."""
+    tex = box_texture(rng)
+    full_d = scene_dict(tex, rfilter='gaussian')
+    mask = gaussian_interior(mi.load_dict(full_d))
+    (ox, oy), (cw, ch) = (6, 3), (14, 10)
+    crop_d = scene_dict(tex, rfilter='gaussian')
+    crop_d['sensor']['film'].update(crop_offset_x=ox, crop_offset_y=oy, crop_width=cw,
+                                    crop_height=ch)
+    full = np.array(mi.render(mi.load_dict(full_d), spp=1, seed=1))
+    crop = np.array(mi.render(mi.load_dict(crop_d), spp=1, seed=2))
+    window = mask[oy:oy + ch, ox:ox + cw]
+    assert crop.shape[:2] == (ch, cw) and window.sum() > 20
+    assert np.abs(crop - full[oy:oy + ch, ox:ox + cw])[window].max() < 1e-4
+
+
+def test_sample_called_without_render_keeps_the_sample_footprint(rng):
+    """``sample()`` is the interface a user's own render loop calls (Mitsuba's ``prepare``,
+    ``sample_rays``, ``sample``): without ``render()`` the rays are not drawn from the Gaussian
+    filter per pixel, so pixel footprints do not apply and the textures keep the sample's
+    footprint — the radiance equals that of ``footprint="sample"`` on the same rays and random
+    numbers (float32 rounding: rtol 1e-6), and differs from the pixel-centred lookup (which a
+    render gives: the test can fail)."""
+    tex = box_texture(rng)
+    out = {}
+    for footprint in ('pixel', 'sample'):
+        scene = mi.load_dict(scene_dict(tex, footprint=footprint, rfilter='gaussian'))
+        integrator, sensor = scene.integrator(), scene.sensors()[0]
+        sampler, _ = integrator.prepare(sensor, 3, 1, [])
+        ray, _, _ = integrator.sample_rays(scene, sensor, sampler)
+        L, valid, _, _ = integrator.sample(dr.ADMode.Primal, scene, sampler, ray, None, None,
+                                           mi.Bool(True))
+        out[footprint] = np.array(L), np.array(valid)
+    assert out['pixel'][1].mean() > 0.5
+    np.testing.assert_allclose(out['pixel'][0], out['sample'][0], rtol=1e-6, atol=1e-7)
+    pixel = np.array(mi.render(mi.load_dict(scene_dict(tex, rfilter='gaussian')), spp=1, seed=3))
+    sample = np.array(mi.render(mi.load_dict(scene_dict(tex, footprint='sample',
+                                                        rfilter='gaussian')), spp=1, seed=3))
+    assert np.abs(pixel - sample).max() > 1e-2
