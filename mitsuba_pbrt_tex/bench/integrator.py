@@ -5,7 +5,8 @@ differentials, and by ``pbrt_path`` with ``texture_differentials=false``, in one
 interleaved, median of ``--repeats`` renders after a warm-up (compilation excluded). Prints the
 time ratios to ``path``. Targets: ≤ 1.2× with differentials, ≈ 1.0× without. Mitsuba's own
 ``prb`` (the path-replay integrator whose stages ``pbrt_path`` follows) is timed too: its ratio
-to ``path`` is the cost of that structure, which ``pbrt_path`` shares.
+to ``path`` is the cost of that Python structure (``pbrt_path`` records its loop once where
+``prb`` records it twice, so without differentials it costs a little less).
 
 The first cases isolate the integrator: Mitsuba's ``bitmap`` wrapped in a one-sample
 ``pbrt_supersample`` does the same lookups whatever the footprint, but asks for differentials.
