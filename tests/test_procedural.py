@@ -322,6 +322,32 @@ def test_checkerboard_area_is_the_exact_parallelogram_average(rng):
     np.testing.assert_allclose(got[exact], want[exact], atol=2e-4)
 
 
+def test_checkerboard_area_on_lattice_aligned_footprints():
+    """``aamode="area"`` where the random test never lands: parallelograms whose corners lie on
+    cell lines or lattice points, edges exactly one or two cells tall (an edge that ends exactly
+    where a row does, in either direction), axis-aligned squares and strips, both corner
+    orders, a tiny thin sliver across a cell edge — against the same polygon clipping. All coordinates are small dyadic numbers, exact
+    in float32: tolerance 1e-5 (float32 sums of a few pieces)."""
+    cases = [  # centre, d0, d1
+        ((0.25, 0.25), (3.0, 0.0), (0.5, 1.0)),      # slanted edges exactly 1 cell tall
+        ((0.25, 0.25), (0.5, 1.0), (3.0, 0.0)),      # the same, other corner order
+        ((1.5, 0.5), (3.0, 0.0), (0.5, 2.0)),        # 2 cells tall, corners on cell lines
+        ((0.5, 0.5), (1.0, 0.0), (0.0, 1.0)),        # one whole cell
+        ((1.0, 1.0), (1.0, 0.0), (0.0, 1.0)),        # a cell's worth centred on a lattice point
+        ((0.0, 0.5), (2.0, 0.0), (0.0, 1.0)),        # a strip along a row, ends on cell lines
+        ((0.75, -0.25), (0.5, -1.0), (2.5, 0.0)),    # edges going down by exactly 1
+        ((3.0, 2.0), (1.5, 1.5), (-1.5, 1.5)),       # a diamond with corners on lattice points
+        # a sliver 1/1000 of a cell long, 64:1, across a cell edge off-centre: its own (exact)
+        # mean, not the box over its bounding square (0.05 apart here)
+        ((1 + 2 ** -12, 0.5), (2 ** -10, 2 ** -10), (-2 ** -16, 2 ** -16)),
+    ]
+    c, d0, d1 = (np.array([case[k] for case in cases]) for k in range(3))
+    tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', 'tex1': 0.0, 'tex2': 1.0})
+    got = A(tex.eval_1(make_si(c, d0, d1)))
+    want = checker_area_references(c, d0, d1)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
 def test_checkerboard_area_fallbacks():
     """Zero footprints are point samples; degenerate (zero-area) and very wide footprints use
     the box closed form (values by hand: a 1-cell-wide segment along s centred on a cell edge

@@ -321,8 +321,8 @@ def test_after_specular_drops_what_pbrt_drops():
     """Lanes where pbrt-v4's ``SpawnRay`` gives up the differential keep the old rays and become
     invalid: an offset direction or origin of squared length beyond 1e16 (each of the four
     alone), a non-finite offset direction (each alone), a sampled lobe that is not specular, a
-    missed surface (t = ∞), an incoming differential that was not valid. Origins of squared
-    length exactly 1e16 (1e8 in float32, squared) are kept (pbrt: ``> 1e16``). A dropped
+    missed surface (t = ∞), an incoming differential that was not valid. Origins and offset
+    directions of squared length exactly 1e16 (in float32) are kept (pbrt: ``> 1e16``). A dropped
     differential (``dropped()``) is invalid with its rays unchanged."""
     rng = np.random.default_rng(7)
     c = _specular_case(rng, 10, 'reflect')
@@ -349,6 +349,16 @@ def test_after_specular_drops_what_pbrt_drops():
         np.testing.assert_allclose(got[dropped], old[dropped], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(o_x[9], [1e8, 0, 0], rtol=1e-6)
     np.testing.assert_allclose(o_y[9], [0, 1e8, 0], rtol=1e-6)
+    # offset directions of squared length exactly 1e16 in float32 (a head-on mirror hit with
+    # d_x = (-1e8, 0, -1): rx = (-1e8, 0, 1), and 1e16 + 1 rounds to 1e16) are kept, as origins
+    z = np.array([[0.0, 0, 1]])
+    edge = dict(n=z, wo=z, dn_du=0 * z, dn_dv=0 * z, duv_dx=np.zeros((1, 2)),
+                duv_dy=np.zeros((1, 2)), d_x=np.array([[-1e8, 0, -1]]),
+                d_y=np.array([[0, -1e8, -1]]), p=0 * z, dpdx=0 * z, dpdy=0 * z)
+    (_, d_x, _, d_y, valid), _, _ = _after_specular(edge, 'reflect')
+    assert valid.all()
+    np.testing.assert_array_equal(d_x.reshape(3), [-1e8, 0, 1])
+    np.testing.assert_array_equal(d_y.reshape(3), [0, -1e8, 1])
     rays = raydiff.RayDiff(mi.Point3f(1, 2, 3), mi.Vector3f(0, 0, 1), mi.Point3f(4, 5, 6),
                            mi.Vector3f(0, 1, 0), mi.Bool(True))
     gone = [A(v) for v in rays.dropped().fields()]
@@ -374,3 +384,23 @@ def test_ray_differential_footprint_only_on_active_lanes_with_a_valid_differenti
     assert not A(none.valid).any()
     dpdx, dpdy, ok = none.footprint(mi.Point3f(0, 0, 0), mi.Normal3f(0, 0, 1), mi.Bool(True))
     assert not A(ok).any() and not A(dpdx).any() and not A(dpdy).any()
+
+
+def test_shortest_finite_vector_of_each_array():
+    """``CameraFootprint._shortest`` (how the camera's smallest one-pixel differentials are
+    picked from its film samples): for each array of vectors, the shortest finite one, the first
+    of equally short ones, and 0 where none is finite — against numpy's argmin."""
+    rng = np.random.default_rng(4)
+    n = 64
+    a = rng.normal(size=(n, 3))
+    a[[3, 9]] = [0.01, 0.02, 0.0]                   # a tie for the shortest: the first wins
+    a[5] = [np.inf, 0, 0]                           # not finite, and would be "shortest" as NaN
+    a[6] = [np.nan, 0, 0]
+    b = rng.normal(size=(n, 3)) * 3
+    c = np.full((n, 3), np.inf)                     # nothing finite
+    got = [A(v).reshape(3) for v in raydiff.CameraFootprint._shortest((V(a), V(b), V(c)))]
+    for vectors, out in ((a, got[0]), (b, got[1])):
+        length = np.where(np.isfinite(vectors).all(1), (vectors ** 2).sum(1), np.inf)
+        np.testing.assert_allclose(out, vectors[np.argmin(length)], rtol=1e-6)
+    np.testing.assert_array_equal(got[0], np.float32(a[3]))
+    np.testing.assert_array_equal(got[2], [0, 0, 0])
