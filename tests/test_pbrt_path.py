@@ -804,3 +804,26 @@ def test_geometry_gradients_match_prb():
         scale = np.abs(g).max()
         assert scale > 1e-3
         np.testing.assert_allclose(g_p, g, rtol=1e-4, atol=1e-4 * scale)
+
+
+def test_sample_called_with_a_ray_without_differentials():
+    """``sample()`` called directly (a user's own render loop) with a plain ``Ray3f``: the camera
+    hits have no ray differential, so their footprint is the camera approximation's — finite
+    and non-zero partials, as pbrt-v4 does when a ray has none — instead of an error."""
+    scene = mi.load_dict({
+        'type': 'scene', 'sensor': camera([0, 2, 4], [0, 0, 0], 8, 8),
+        'integrator': {'type': 'pbrt_path', 'max_depth': 1},
+        'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(5),
+                  'emitter': {'type': 'area', 'radiance': {'type': 'test_probe',
+                                                           'mode': 'nonzero'}}}})
+    integrator, sensor = scene.integrator(), scene.sensors()[0]
+    sampler = sensor.sampler().clone()
+    sampler.seed(0, 64)
+    i = dr.arange(mi.Float, 64)
+    pos = mi.Point2f(i - 8 * dr.floor(i / 8) + 0.5, dr.floor(i / 8) + 0.5) / 8
+    ray, _ = sensor.sample_ray(mi.Float(0), mi.Float(0.5), pos, mi.Point2f(0.5))
+    L, valid, _, _ = integrator.sample(dr.ADMode.Primal, scene, sampler, mi.Ray3f(ray), None, None,
+                                       mi.Bool(True))
+    L, valid = np.array(L.x), np.array(valid)
+    assert valid.sum() > 20                             # the floor fills most of the view
+    assert np.all(np.isfinite(L)) and L[valid].min() == 1.0
