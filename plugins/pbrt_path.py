@@ -184,7 +184,8 @@ class Plugin:
 
     def scene_needs(self, scene) -> tuple:
         """(does any texture use differentials — also prepares them —, does any BSDF have an
-        ideal specular lobe to propagate a ray differential through).
+        ideal specular lobe to propagate a ray differential through, the shapes whose textures
+        read differentials: :func:`_reader_shapes`).
 
         The scene is traversed once, not at every render (10 ms for a thousand shapes): while
         a scene lives, Mitsuba keeps its shapes in one JIT array (``shapes_dr()``), and holding
@@ -194,18 +195,19 @@ class Plugin:
         without shapes is traversed every time (there is nothing to key on, little to
         traverse)."""
         if not self.texture_differentials:
-            return False, False
+            return False, False, None
         shapes = scene.shapes_dr()
         cached = getattr(self, '_scene_needs', None)
         if cached is not None and shapes.index != 0 and cached[0].index == shapes.index:
-            _, readers, specular, _ = cached
-            return bool(readers), specular
+            _, readers, specular, mask = cached
+            return bool(readers), specular, mask
         nodes = list(mi.traverse(scene).hierarchy.keys())
         readers = [n for n in nodes if isinstance(n, mi.Texture) and uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
-        self._scene_needs = (shapes, readers, specular, _reader_shapes(scene, readers))
-        return bool(readers), specular
+        mask = _reader_shapes(scene, readers)
+        self._scene_needs = (shapes, readers, specular, mask)
+        return bool(readers), specular, mask
 
     def footprint(self, sensor) -> raydiff.CameraFootprint:
         """The camera approximation's minimum differentials (512 rays and a few small kernels,
@@ -370,8 +372,7 @@ class Plugin:
         approximation, does a BSDF have an ideal specular lobe, the shapes whose textures read
         differentials (:func:`_reader_shapes`)) — computed once per ``sample()``, outside any
         symbolic loop."""
-        want, specular = self.scene_needs(scene)
-        gate = self._scene_needs[3] if want else None
+        want, specular, gate = self.scene_needs(scene)
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
         # (but a frozen function cannot record the host → device copy; spp is part of its key)
