@@ -6,8 +6,8 @@
 # re-checked with more test files).
 # The working tree (tests included, committed or not) is copied to a scratch folder
 # ($MUTATE_DIR, default /tmp/mutate-<module>) so that editing the tree while it runs is safe; one
-# worker, nice 15. Results: `cd $MUTATE_DIR && ../path/.venv/bin/mutmut results` (the script
-# prints the summary at the end).
+# worker (MUTATE_CHILDREN=2: two, on an otherwise idle machine), nice 15. Results:
+# `cd $MUTATE_DIR && ../path/.venv/bin/mutmut results` (the script prints the summary at the end).
 # A plugin (plugins/NAME.py) is imported as mitsuba_pbrt_tex.plugins.NAME (pyproject's
 # package-dir), while mutmut names a mutant after its file's path: the scratch copy therefore
 # holds the plugins inside the package too, and the mutated file is
@@ -125,5 +125,5 @@ fi
 } > setup.cfg
 rm -f pyproject.toml.bak
 export MITSUBA_PBRT_TEX_REFERENCE_CACHE="${MITSUBA_PBRT_TEX_REFERENCE_CACHE:-$DIR/reference-cache}"
-nice -n 15 "$ROOT/.venv/bin/mutmut" run --max-children 1 ${MUTANTS:-} || true
+nice -n 15 "$ROOT/.venv/bin/mutmut" run --max-children "${MUTATE_CHILDREN:-1}" ${MUTANTS:-} || true
 "$ROOT/.venv/bin/mutmut" results --all true 2>/dev/null || "$ROOT/.venv/bin/mutmut" results

@@ -329,6 +329,26 @@ def test_second_sensor_counts_samples_in_its_own_pixels(rng):
     assert np.abs(a - b)[mask].max() < 1e-4
 
 
+def test_second_sensor_in_the_first_ones_place_counts_samples_in_its_own_pixels(rng):
+    """As above, with the scene's first sensor where the second is (same pose, another field of
+    view and film): the second sensor's hits are camera hits of the first too, and its film
+    positions decode through the first to pixels of another film — so only the sensor rendered
+    gives its pixels. The render of sensor 1 equals that of the same sensor as a scene's only
+    one with the same seed (atol 1e-5: the same kernels on the same numbers; measured equal).
+    Decoding through the first sensor counts samples in other pixels, ~0.1 per pixel."""
+    tex = box_texture(rng)
+    alone = scene_dict(tex, rfilter='gaussian')
+    first = dict(alone['sensor'], fov=60,
+                 film={'type': 'hdrfilm', 'width': 20, 'height': 20,
+                       'rfilter': {'type': 'gaussian'}})
+    scene = mi.load_dict({'type': 'scene', 'first': first,
+                          **{k: v for k, v in alone.items() if k != 'type'}})
+    a = np.array(mi.render(scene, sensor=1, spp=2, seed=3))
+    b = np.array(mi.render(mi.load_dict(alone), spp=2, seed=3))
+    assert a.shape[:2] == (RES[1], RES[0]) and b.mean() > 0.05
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
+
+
 def test_direct_render_forward_and_backward_draw_the_render_seeds_offsets(rng):
     """The integrator's own ``render_forward``/``render_backward`` (Mitsuba's entry points, here
     called directly with a seed) use the film offsets of that seed, as ``render`` does. With
@@ -412,3 +432,37 @@ def test_sample_called_without_render_keeps_the_sample_footprint(rng):
     sample = np.array(mi.render(mi.load_dict(scene_dict(tex, footprint='sample',
                                                         rfilter='gaussian')), spp=1, seed=3))
     assert np.abs(pixel - sample).max() > 1e-2
+
+
+def test_sample_called_without_render_in_backward_mode(rng):
+    """The same user's loop differentiated as Mitsuba's ``render_backward`` does it (derivatives
+    suspended): a primal ``sample()`` on a clone of the sampler, then ``sample()`` in backward
+    mode with the
+    per-sample image gradient ``δL`` and the primal radiance as ``state_in``. Without
+    ``render()`` the Gaussian film's rays are not ours, so the texel gradient equals that of
+    ``footprint="sample"`` on the same rays (float32 rounding of the scattered sums: rtol 1e-5
+    of the largest texel's) — and it is not zero: the backward pass must receive ``δL`` and
+    the primal radiance (``state_in``) that the path replay reads."""
+    texels = rng.random((32, 32, 3)).astype(np.float32)
+    key = 'plane.bsdf.reflectance.data'
+    grads = {}
+    for footprint in ('pixel', 'sample'):
+        tex = {'type': 'pbrt_imagemap', 'filter': 'box', 'data': mi.TensorXf(texels),
+               'uscale': 3.0, 'vscale': 3.0}       # a fresh tensor per scene
+        scene = mi.load_dict(scene_dict(tex, footprint=footprint, rfilter='gaussian',
+                                        second_bsdf=False))
+        integrator, sensor = scene.integrator(), scene.sensors()[0]
+        params = mi.traverse(scene)
+        dr.enable_grad(params[key])
+        params.update()
+        with dr.suspend_grad():                    # as render_backward
+            sampler, _ = integrator.prepare(sensor, 3, 1, [])
+            ray, _, _ = integrator.sample_rays(scene, sensor, sampler)
+            L, _, _, _ = integrator.sample(dr.ADMode.Primal, scene, sampler.clone(), ray, None,
+                                           None, mi.Bool(True))
+            δL = mi.Spectrum(dr.linspace(mi.Float, 0.5, 1.5, dr.width(L)))
+            integrator.sample(dr.ADMode.Backward, scene, sampler, ray, δL, L, mi.Bool(True))
+        grads[footprint] = np.array(dr.grad(params[key]))
+    scale = np.abs(grads['sample']).max()
+    assert scale > 1e-3
+    np.testing.assert_allclose(grads['pixel'], grads['sample'], rtol=0, atol=1e-5 * scale)

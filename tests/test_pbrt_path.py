@@ -355,9 +355,21 @@ def test_integrator_parameter_errors_and_variants():
         mi.set_variant('llvm_ad_rgb')
 
 
-@pytest.mark.parametrize('params', [{}, {'max_depth': 10}, {'max_depth': -1},
-                                    {'hide_emitters': True}, {'max_depth': 3, 'rr_depth': 1}])
-def test_renders_as_mitsuba_prb_with_the_same_parameters(params):
+def _open_to_the_sky(scene):
+    """A Cornell box dict without its back wall, lit through the opening by a sky (an
+    environment seen directly by the camera rays that miss) and a sun (a delta emitter)."""
+    scene = {k: v for k, v in scene.items() if k != 'back'}
+    scene['sky'] = {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [0.3, 0.4, 0.6]}}
+    scene['sun'] = {'type': 'directional', 'direction': [0.2, -0.5, 1.0], 'irradiance': 4.0}
+    return scene
+
+
+@pytest.mark.parametrize('params, sky', [({}, False), ({'max_depth': 10}, False),
+                                         ({'max_depth': -1}, False),
+                                         ({'hide_emitters': True}, False),
+                                         ({'max_depth': 3, 'rr_depth': 1}, False),
+                                         ({}, True), ({'hide_emitters': True}, True)])
+def test_renders_as_mitsuba_prb_with_the_same_parameters(params, sky):
     """Without a texture that reads differentials pbrt_path is Mitsuba's ``prb`` — the same
     helpers and the same order of random numbers (module docstring) — so Mitsuba's Cornell box
     (its light in view; albedos high enough that every bounce and Russian roulette show)
@@ -366,8 +378,12 @@ def test_renders_as_mitsuba_prb_with_the_same_parameters(params):
     left out take each integrator's default, which must be prb's: max_depth 6 (``{}``),
     rr_depth 5 (shown at max_depth 10, where roulette runs), hide_emitters false, -1 unbounded.
     One bounce more or less, or roulette a bounce later or earlier, moves pixels by ≥ 0.04;
-    hiding the light, by 16."""
+    hiding the light, by 16. ``sky``: the box open at the back to an environment and a sun —
+    the background is the sky unless emitters are hidden (then black, as the hidden light), and
+    the sun's delta lobe takes MIS weight 1."""
     scene = mi.cornell_box()
+    if sky:
+        scene = _open_to_the_sky(scene)
     scene['sensor']['film']['width'] = scene['sensor']['film']['height'] = 48
     images = [np.array(mi.render(mi.load_dict({**scene, 'integrator': {'type': kind, **params}}),
                                  spp=16, seed=3))
@@ -712,8 +728,10 @@ def test_set_total_spp_sets_the_footprint_scale():
     np.testing.assert_array_equal(partials(ours), half)
 
 
-def _small_cornell(integrator, glossy=False):
+def _small_cornell(integrator, glossy=False, sky=False):
     scene = mi.cornell_box()
+    if sky:
+        scene = _open_to_the_sky(scene)
     if glossy:          # BSDFs whose value depends on the incident direction
         scene['white'] = {'type': 'roughconductor', 'alpha': 0.3}
         scene['red'] = {'type': 'roughplastic', 'alpha': 0.2,
@@ -778,19 +796,58 @@ def test_aovs_are_zero_where_no_texture_reads_differentials():
     np.testing.assert_array_equal(np.array(mi.render(off, spp=2))[..., 3:], 0)
 
 
-def test_geometry_gradients_match_prb():
+@pytest.mark.parametrize('sky', [False, True])
+def test_geometry_gradients_match_prb(sky):
     """Gradients with respect to vertex positions go through the hits' positions and the
     incident direction re-attached to the previous hit (prb's interior derivative; the
     boundary term is neither's): backward gradients of Σ w·image with respect to the Cornell
     box's red wall and light transforms, with glossy walls (whose value depends on that
     direction), and with respect to the light's radiance (the emission seen by BSDF-sampled
     paths, tracked in the differential phase) agree with Mitsuba's ``prb`` (same seeds) to float32
-    rounding of the accumulated sums (rtol 1e-4 of the largest component)."""
+    rounding of the accumulated sums (rtol 1e-4 of the largest component). ``sky``: the box
+    open to an environment and a sun (:func:`_open_to_the_sky`), and the sun's irradiance among
+    the parameters — emitters that are not surfaces, whose solid-angle Jacobian is 1 (a
+    Jacobian of their far-away sample points would give the wall a gradient of ~2/distance),
+    and a delta emitter of pdf 1."""
     w = mi.TensorXf(np.random.default_rng(4).random((24, 24, 3)).astype(np.float32))
-    keys = ('red-wall.to_world', 'light.to_world', 'light.emitter.radiance.value')
+    keys = ('red-wall.to_world', 'light.to_world', 'light.emitter.radiance.value') + (
+        ('sun.irradiance.value',) if sky else ())
     grads = {}
     for kind in ('prb', 'pbrt_path'):
-        scene = _small_cornell({'type': kind, 'max_depth': 4}, glossy=True)
+        scene = _small_cornell({'type': kind, 'max_depth': 4}, glossy=True, sky=sky)
+        params = mi.traverse(scene)
+        params.keep(list(keys))
+        for k in keys:
+            dr.enable_grad(params[k])
+        params.update()
+        image = mi.render(scene, params, spp=4, seed=1, seed_grad=2)
+        dr.backward(dr.sum(w * image, axis=None))
+        grads[kind] = [np.array(getattr(dr.grad(params[k]), 'matrix', dr.grad(params[k])))
+                       for k in keys]
+    for g, g_p in zip(grads['prb'], grads['pbrt_path']):
+        scale = np.abs(g).max()
+        assert scale > 1e-3
+        np.testing.assert_allclose(g_p, g, rtol=1e-4, atol=1e-4 * scale)
+
+
+def test_gradient_of_a_lone_sun_matches_prb():
+    """A scene lit by one directional emitter alone samples it with pdf exactly 1 (one emitter,
+    a delta lobe): the gradient of Σ w·image with respect to its irradiance and to the glossy
+    floor's transform (the re-attached emitter sample) equals Mitsuba's ``prb``'s (same seeds)
+    to float32 rounding of the sums, rtol 1e-4 as above. Dropping the emitter sample's
+    derivative where its pdf is 1 — the sun's exact value — zeroes the irradiance's."""
+    w = mi.TensorXf(np.random.default_rng(5).random((16, 16, 3)).astype(np.float32))
+    keys = ('sun.irradiance.value', 'floor.to_world')
+    grads = {}
+    for kind in ('prb', 'pbrt_path'):
+        scene = mi.load_dict({
+            'type': 'scene', 'integrator': {'type': kind, 'max_depth': 3},
+            'sensor': camera([0, 2, 4], [0, 0, 0], 16, 16),
+            'sun': {'type': 'directional', 'direction': [0.3, -1, -0.2], 'irradiance': 2.0},
+            'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(3),
+                      'bsdf': {'type': 'roughplastic', 'alpha': 0.3}},
+            'ball': {'type': 'sphere', 'center': [0.5, 0.5, 0], 'radius': 0.5,
+                     'bsdf': {'type': 'diffuse'}}})
         params = mi.traverse(scene)
         params.keep(list(keys))
         for k in keys:

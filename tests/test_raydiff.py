@@ -386,6 +386,32 @@ def test_ray_differential_footprint_only_on_active_lanes_with_a_valid_differenti
     assert not A(ok).any() and not A(dpdx).any() and not A(dpdy).any()
 
 
+def test_camera_approximation_takes_the_smallest_differentials_on_the_film_diagonal():
+    """pbrt-v4's ``FindMinimumDifferentials`` takes the smallest one-pixel direction
+    differentials over 512 camera rays along the film diagonal, corner to corner (i/511). Their
+    length is the chord between the unit ray and its offset ray — frame-independent, so it is
+    computed here in float64 from Mitsuba's own rays. The camera's principal point is off
+    centre, so one corner is farther off axis than the other and holds the minimum (the
+    other corner's chord is 20% longer). Tolerance rtol 2e-4: the float32 chord (~0.014) is
+    good to ~1e-5; sampling the diagonal 1/511 short of or beyond the corner changes it by
+    8.6e-4."""
+    T = mi.ScalarTransform4f
+    sensor = mi.load_dict({'type': 'perspective', 'fov': 30, 'principal_point_offset_x': 0.3,
+                           'principal_point_offset_y': 0.2,
+                           'to_world': T().look_at([1, 2, 3], [0, 0, 0], [0, 1, 0]),
+                           'film': {'type': 'hdrfilm', 'width': 32, 'height': 24}})
+    t = np.arange(512) / 511.0
+    ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(t, t), mi.Point2f(0.5, 0.5))
+    d = normalize(A(ray.d).astype(np.float64))
+    approx = raydiff.CameraFootprint(sensor)
+    for offset, got in ((ray.d_x, approx.min_dir_x), (ray.d_y, approx.min_dir_y)):
+        chord = np.linalg.norm(normalize(A(offset).astype(np.float64)) - d, axis=1)
+        assert chord[0] > 1.1 * chord[-1]           # the far corner is the minimum
+        np.testing.assert_allclose(np.linalg.norm(A(got).reshape(3)), chord.min(), rtol=2e-4)
+    for got in (approx.min_pos_x, approx.min_pos_y):   # a pinhole: all rays from one point
+        np.testing.assert_array_equal(A(got).reshape(3), 0)
+
+
 def test_shortest_finite_vector_of_each_array():
     """``CameraFootprint._shortest`` (how the camera's smallest one-pixel differentials are
     picked from its film samples): for each array of vectors, the shortest finite one, the first
