@@ -326,8 +326,9 @@ def test_checkerboard_area_on_lattice_aligned_footprints():
     """``aamode="area"`` where the random test never lands: parallelograms whose corners lie on
     cell lines or lattice points, edges exactly one or two cells tall (an edge that ends exactly
     where a row does, in either direction), axis-aligned squares and strips, both corner
-    orders, a tiny thin sliver across a cell edge — against the same polygon clipping. All coordinates are small dyadic numbers, exact
-    in float32: tolerance 1e-5 (float32 sums of a few pieces)."""
+    orders, tiny thin slivers across a cell edge, footprints at the row limit — against the
+    same polygon clipping. All coordinates are small dyadic numbers, exact in float32:
+    tolerance 1e-5 (float32 sums of a few pieces)."""
     cases = [  # centre, d0, d1
         ((0.25, 0.25), (3.0, 0.0), (0.5, 1.0)),      # slanted edges exactly 1 cell tall
         ((0.25, 0.25), (0.5, 1.0), (3.0, 0.0)),      # the same, other corner order
@@ -340,12 +341,46 @@ def test_checkerboard_area_on_lattice_aligned_footprints():
         # a sliver 1/1000 of a cell long, 64:1, across a cell edge off-centre: its own (exact)
         # mean, not the box over its bounding square (0.05 apart here)
         ((1 + 2 ** -12, 0.5), (2 ** -10, 2 ** -10), (-2 ** -16, 2 ** -16)),
+        # one 2^-22 cell long (area 2^-49), across both axes near the origin: still exact
+        # (its area is far above the degeneracy threshold, 1e-12 of its extent squared)
+        ((2 ** -26, 2 ** -25), (2 ** -22, 2 ** -22), (-2 ** -28, 2 ** -28)),
+        # exactly AREA_MAX_ROWS = 16 rows along the shorter axis: still exact (the box form is
+        # 0.25 off): a one-cell-wide strip along the diagonal, mostly on cells of one colour
+        ((0.5, 0.5), (16.0, 16.0), (1.0, 0.0)),
+        # 16.5 cells along x but 15.5 rows along y, whose edge vectors' x parts nearly cancel:
+        # the rows are counted along y (the shorter extent), so it is exact
+        ((0.25, 0.5), (15.5, 15.5), (1.0, 0.0)),
     ]
     c, d0, d1 = (np.array([case[k] for case in cases]) for k in range(3))
     tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', 'tex1': 0.0, 'tex2': 1.0})
     got = A(tex.eval_1(make_si(c, d0, d1)))
     want = checker_area_references(c, d0, d1)
     np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_checkerboard_area_of_footprints_much_smaller_than_a_cell(rng):
+    """``aamode="area"`` on footprints 10⁻⁴ and 10⁻⁵ cells across (a checkerboard magnified
+    until a cell covers 10⁴–10⁵ pixels) that straddle a cell edge — near the origin, near an odd
+    column, 1000 cells out; anisotropy up to 8 — against polygon clipping. The float32 inputs
+    themselves are exact for the reference; what remains is the package's float32 arithmetic,
+    whose error grows as the footprint shrinks (~2·10⁻⁸ cell / its width, measured 1.5–2.8e-4
+    at 10⁻⁴ and 1.7–2.3e-3 at 10⁻⁵): tolerance 5·10⁻⁸ / width. Computing the footprint's corners
+    and S far from the origin, or S as 1 - |x mod 2 - 1| (rounded to multiples of 2⁻²⁴ near
+    even columns), is off by 6·10⁻⁴–0.6 here."""
+    from mitsuba_pbrt_tex.checker import area_mean
+    n = 200
+    for base in (0.0, 1.0, 1000.0):
+        for width in (1e-4, 1e-5):
+            c = f32(np.stack([base + rng.uniform(-width, width, n), rng.uniform(0.1, 0.9, n)], 1))
+            ang = rng.uniform(0, 2 * math.pi, n)
+            aniso = rng.uniform(1, 8, n)
+            d0 = f32(np.stack([np.cos(ang), np.sin(ang)], 1) * (width * aniso)[:, None])
+            d1 = f32(np.stack([-np.sin(ang), np.cos(ang)], 1) * width)
+            mean, ok = area_mean(*[(mi.Float(v[:, 0]), mi.Float(v[:, 1])) for v in (c, d0, d1)])
+            assert A(ok).all()
+            want = np.array(checker_area_references(c, d0, d1))
+            np.testing.assert_allclose(0.5 - 0.5 * A(mean), want, rtol=0, atol=5e-8 / width,
+                                       err_msg=f'base {base}, width {width}')
 
 
 def test_checkerboard_area_fallbacks():
