@@ -809,19 +809,28 @@ def test_geometry_gradients_match_prb(sky):
     the parameters — emitters that are not surfaces, whose solid-angle Jacobian is 1 (a
     Jacobian of their far-away sample points would give the wall a gradient of ~2/distance),
     and a delta emitter of pdf 1."""
-    w = mi.TensorXf(np.random.default_rng(4).random((24, 24, 3)).astype(np.float32))
     keys = ('red-wall.to_world', 'light.to_world', 'light.emitter.radiance.value') + (
         ('sun.irradiance.value',) if sky else ())
+    _gradients_match_prb(
+        lambda kind: _small_cornell({'type': kind, 'max_depth': 4}, glossy=True, sky=sky),
+        keys, seed=4)
+
+
+def _gradients_match_prb(load, keys, seed):
+    """Backward gradients of Σ w·image (w random, fixed) with respect to ``keys`` of the scene
+    ``load(kind)`` rendered by ``prb`` and by ``pbrt_path`` with the same seeds: equal to
+    float32 rounding of the accumulated sums (rtol 1e-4 of the largest component), non-zero."""
     grads = {}
     for kind in ('prb', 'pbrt_path'):
-        scene = _small_cornell({'type': kind, 'max_depth': 4}, glossy=True, sky=sky)
+        scene = load(kind)
         params = mi.traverse(scene)
         params.keep(list(keys))
         for k in keys:
             dr.enable_grad(params[k])
         params.update()
         image = mi.render(scene, params, spp=4, seed=1, seed_grad=2)
-        dr.backward(dr.sum(w * image, axis=None))
+        w = np.random.default_rng(seed).random(image.shape).astype(np.float32)
+        dr.backward(dr.sum(mi.TensorXf(w) * image, axis=None))
         grads[kind] = [np.array(getattr(dr.grad(params[k]), 'matrix', dr.grad(params[k])))
                        for k in keys]
     for g, g_p in zip(grads['prb'], grads['pbrt_path']):
@@ -836,31 +845,14 @@ def test_gradient_of_a_lone_sun_matches_prb():
     floor's transform (the re-attached emitter sample) equals Mitsuba's ``prb``'s (same seeds)
     to float32 rounding of the sums, rtol 1e-4 as above. Dropping the emitter sample's
     derivative where its pdf is 1 — the sun's exact value — zeroes the irradiance's."""
-    w = mi.TensorXf(np.random.default_rng(5).random((16, 16, 3)).astype(np.float32))
-    keys = ('sun.irradiance.value', 'floor.to_world')
-    grads = {}
-    for kind in ('prb', 'pbrt_path'):
-        scene = mi.load_dict({
-            'type': 'scene', 'integrator': {'type': kind, 'max_depth': 3},
-            'sensor': camera([0, 2, 4], [0, 0, 0], 16, 16),
-            'sun': {'type': 'directional', 'direction': [0.3, -1, -0.2], 'irradiance': 2.0},
-            'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(3),
-                      'bsdf': {'type': 'roughplastic', 'alpha': 0.3}},
-            'ball': {'type': 'sphere', 'center': [0.5, 0.5, 0], 'radius': 0.5,
-                     'bsdf': {'type': 'diffuse'}}})
-        params = mi.traverse(scene)
-        params.keep(list(keys))
-        for k in keys:
-            dr.enable_grad(params[k])
-        params.update()
-        image = mi.render(scene, params, spp=4, seed=1, seed_grad=2)
-        dr.backward(dr.sum(w * image, axis=None))
-        grads[kind] = [np.array(getattr(dr.grad(params[k]), 'matrix', dr.grad(params[k])))
-                       for k in keys]
-    for g, g_p in zip(grads['prb'], grads['pbrt_path']):
-        scale = np.abs(g).max()
-        assert scale > 1e-3
-        np.testing.assert_allclose(g_p, g, rtol=1e-4, atol=1e-4 * scale)
+    _gradients_match_prb(lambda kind: mi.load_dict({
+        'type': 'scene', 'integrator': {'type': kind, 'max_depth': 3},
+        'sensor': camera([0, 2, 4], [0, 0, 0], 16, 16),
+        'sun': {'type': 'directional', 'direction': [0.3, -1, -0.2], 'irradiance': 2.0},
+        'floor': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(3),
+                  'bsdf': {'type': 'roughplastic', 'alpha': 0.3}},
+        'ball': {'type': 'sphere', 'center': [0.5, 0.5, 0], 'radius': 0.5,
+                 'bsdf': {'type': 'diffuse'}}}), ('sun.irradiance.value', 'floor.to_world'), seed=5)
 
 
 def test_sample_called_with_a_ray_without_differentials():
