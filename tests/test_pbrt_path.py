@@ -384,11 +384,26 @@ def test_renders_as_mitsuba_prb_with_the_same_parameters(params, sky):
     scene = mi.cornell_box()
     if sky:
         scene = _open_to_the_sky(scene)
+    _renders_as_prb(scene, params)
+
+
+def _renders_as_prb(scene, params):
     scene['sensor']['film']['width'] = scene['sensor']['film']['height'] = 48
     images = [np.array(mi.render(mi.load_dict({**scene, 'integrator': {'type': kind, **params}}),
                                  spp=16, seed=3))
               for kind in ('prb', 'pbrt_path')]
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
+
+
+def test_renders_as_mitsuba_prb_through_glass_with_roulette():
+    """As above with the boxes made of glass and roulette from the first bounce: roulette's
+    survival probability uses the product of the relative indices of refraction crossed so
+    far (1.5 inside the glass, 1 again outside), as prb's does."""
+    scene = mi.cornell_box()
+    scene['glass'] = {'type': 'dielectric'}
+    for box in ('small-box', 'large-box'):
+        scene[box]['bsdf'] = {'type': 'ref', 'id': 'glass'}
+    _renders_as_prb(scene, {'max_depth': 8, 'rr_depth': 1})
 
 
 def test_spp_scale_as_an_integer_is_a_number():
