@@ -870,6 +870,22 @@ def test_gradient_of_a_lone_sun_matches_prb():
                  'bsdf': {'type': 'diffuse'}}}), ('sun.irradiance.value', 'floor.to_world'), seed=5)
 
 
+def test_backward_render_without_a_differentiable_parameter_is_an_error():
+    """``render_backward`` when no scene parameter has gradients enabled: the differential
+    phase's contribution is then not attached to the AD graph — usually a user's mistake
+    (``dr.enable_grad`` or ``params.update()`` forgotten) — and, as Mitsuba's ``prb`` does,
+    pbrt_path raises an error that says so instead of returning zero gradients."""
+    scene = _small_cornell({'type': 'pbrt_path', 'max_depth': 3})
+    with pytest.raises(Exception) as e:
+        scene.integrator().render_backward(scene, mi.traverse(scene),
+                                           dr.ones(mi.TensorXf, (24, 24, 3)), spp=1)
+    chain, c = [], e.value
+    while c is not None:
+        chain.append(str(c))
+        c = c.__cause__
+    assert any('pbrt_path' in m and 'not attached to the AD graph' in m for m in chain), chain
+
+
 def test_sample_called_with_a_ray_without_differentials():
     """``sample()`` called directly (a user's own render loop) with a plain ``Ray3f``: the camera
     hits have no ray differential, so their footprint is the camera approximation's — finite
