@@ -437,9 +437,8 @@ def test_sample_called_without_render_keeps_the_sample_footprint(rng):
 def test_sample_called_without_render_in_backward_mode(rng):
     """The same user's loop differentiated as Mitsuba's ``render_backward`` does it (derivatives
     suspended): a primal ``sample()`` on a clone of the sampler, then ``sample()`` in backward
-    mode with the
-    per-sample image gradient ``δL`` and the primal radiance as ``state_in``. Without
-    ``render()`` the Gaussian film's rays are not ours, so the texel gradient equals that of
+    mode with the per-sample image gradient ``δL`` and the primal radiance as ``state_in``.
+    Without ``render()`` the Gaussian film's rays are not ours, so the texel gradient equals that of
     ``footprint="sample"`` on the same rays (float32 rounding of the scattered sums: rtol 1e-5
     of the largest texel's) — and it is not zero: the backward pass must receive ``δL`` and
     the primal radiance (``state_in``) that the path replay reads."""

@@ -393,8 +393,8 @@ def test_camera_approximation_takes_the_smallest_differentials_on_the_film_diago
     computed here in float64 from Mitsuba's own rays. The camera's principal point is off
     centre, so one corner is farther off axis than the other and holds the minimum (the
     other corner's chord is 20% longer). Tolerance rtol 2e-4: the float32 chord (~0.014) is
-    good to ~1e-5; sampling the diagonal 1/511 short of or beyond the corner changes it by
-    8.6e-4."""
+    good to ~1e-5; sampling the diagonal short of or beyond the corner (a spacing of 1/510 or
+    1/512) changes it by 8.6e-4 to 1.7e-3."""
     T = mi.ScalarTransform4f
     sensor = mi.load_dict({'type': 'perspective', 'fov': 30, 'principal_point_offset_x': 0.3,
                            'principal_point_offset_y': 0.2,
