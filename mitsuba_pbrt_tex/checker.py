@@ -36,8 +36,9 @@ function as ``c_left·F + c_right·(1 - F)`` with F the kernel mass left of that
 ``(1 + t)/2``; triangle: its piecewise-quadratic CDF), which is exact to float rounding. The
 ``area`` form works relative to the lattice point nearest the footprint's centre and takes S as
 a distance to the nearest even integer, so a footprint much smaller than a cell keeps its shape
-and S its digits; its float32 error still grows as ~2·10⁻⁸ cell / the footprint's width (10⁻³
-cell: ~2·10⁻⁵). Results are clamped to [-1, 1].
+and S its digits near that point (~10⁻⁷); along an axis where the centre is half a cell from
+it, the corners keep float32's absolute resolution there (6·10⁻⁸), so the error grows as
+~2·10⁻⁸ cell / the footprint's width (10⁻³ cell: ~2·10⁻⁵). Results are clamped to [-1, 1].
 """
 
 from __future__ import annotations
