@@ -422,17 +422,9 @@ def test_spp_scale_as_an_integer_is_a_number():
     assert np.abs(two - partials(1.0)).max() > 1e-3
 
 
-@pytest.mark.parametrize('case', ['diffuse', 'mirror', 'aovs', 'no differentials',
-                                  'mirror, no differentials', 'aovs, no differentials'])
-def test_primal_renders_record_the_path_loop_once(case, monkeypatch):
-    """Tracing the path loop in Python is a large share of a render's cost (``bench
-    integrator``), and Dr.Jit records a loop a second time when its state holds something
-    constant (the module docstring). A primal render must therefore call the loop body once —
-    with a texture that reads differentials, with a mirror that propagates them, with AOVs, and
-    without differentials; a variable added to the loop state that never changes (or a rays'
-    time left one value wide) makes it twice. Differentiable renders may record twice (they keep
-    Dr.Jit's loop optimisation), so only the primal pass is counted. The image is checked
-    against Mitsuba's ``prb`` as well: equal where no texture reads differentials, and finite."""
+def _count_loop_bodies(monkeypatch):
+    """A list to which every recording of a pbrt_path loop body (``dr.while_loop`` labelled
+    ``pbrt_path (…)``) appends the loop's label."""
     calls = []
     real_loop = dr.while_loop
 
@@ -447,6 +439,21 @@ def test_primal_renders_record_the_path_loop_once(case, monkeypatch):
         return real_loop(state, cond, counted, *args, **kwargs)
 
     monkeypatch.setattr(dr, 'while_loop', counting_loop)
+    return calls
+
+
+@pytest.mark.parametrize('case', ['diffuse', 'mirror', 'aovs', 'no differentials',
+                                  'mirror, no differentials', 'aovs, no differentials'])
+def test_primal_renders_record_the_path_loop_once(case, monkeypatch):
+    """Tracing the path loop in Python is a large share of a render's cost (``bench
+    integrator``), and Dr.Jit records a loop a second time when its state holds something
+    constant (the module docstring). A primal render must therefore call the loop body once —
+    with a texture that reads differentials, with a mirror that propagates them, with AOVs, and
+    without differentials; a variable added to the loop state that never changes (or a rays'
+    time left one value wide) makes it twice. Differentiable renders may record twice (they keep
+    Dr.Jit's loop optimisation), so only the primal pass is counted. The image is checked
+    against Mitsuba's ``prb`` as well: equal where no texture reads differentials, and finite."""
+    calls = _count_loop_bodies(monkeypatch)
     plain = case.endswith('no differentials')
     reflectance = 0.5 if plain else {'type': 'pbrt_checkerboard'}
     integrator = {'type': 'pbrt_path', 'max_depth': 4}
@@ -466,7 +473,7 @@ def test_primal_renders_record_the_path_loop_once(case, monkeypatch):
     assert calls == ['pbrt_path (Primal)'], calls
     assert np.all(np.isfinite(image))
     if plain:
-        monkeypatch.setattr(dr, 'while_loop', real_loop)
+        monkeypatch.undo()                          # the real dr.while_loop for prb
         prb = np.array(mi.render(mi.load_dict({**scene_d, 'integrator': {'type': 'prb',
                                                                          'max_depth': 4}}),
                                  spp=4, seed=1))
@@ -590,19 +597,7 @@ def test_pixel_footprint_renders_record_each_loop_once(rfilter, extra, monkeypat
     """As above, with ``footprint="pixel"``: a Gaussian film (the decoded pixel is loop state)
     records the path loop once; silhouette samples record their own loop once, with the one
     path loop inside it (two path-loop recordings in all, one per loop that traces paths)."""
-    calls = []
-    real_loop = dr.while_loop
-
-    def counting_loop(state, cond, body, *args, **kwargs):
-        label = kwargs.get('label') or ''
-
-        def counted(*s):
-            if label.startswith('pbrt_path'):
-                calls.append(label)
-            return body(*s)
-        return real_loop(state, cond, counted, *args, **kwargs)
-
-    monkeypatch.setattr(dr, 'while_loop', counting_loop)
+    calls = _count_loop_bodies(monkeypatch)
     sensor = camera([0, 2, 4], [0, 0, 0], 16, 16)
     sensor['film']['rfilter'] = {'type': rfilter}
     texels = mi.TensorXf(np.full((4, 4, 3), 0.5, np.float32))
