@@ -336,15 +336,11 @@ def test_second_sensor_in_the_first_ones_place_counts_samples_in_its_own_pixels(
     gives its pixels. The render of sensor 1 equals that of the same sensor as a scene's only
     one with the same seed (atol 1e-5: the same kernels on the same numbers; measured equal).
     Decoding through the first sensor counts samples in other pixels, ~0.1 per pixel."""
+    from test_pixel_footprint import two_sensor_scene
     tex = box_texture(rng)
-    alone = scene_dict(tex, rfilter='gaussian')
-    first = dict(alone['sensor'], fov=60,
-                 film={'type': 'hdrfilm', 'width': 20, 'height': 20,
-                       'rfilter': {'type': 'gaussian'}})
-    scene = mi.load_dict({'type': 'scene', 'first': first,
-                          **{k: v for k, v in alone.items() if k != 'type'}})
+    scene = mi.load_dict(two_sensor_scene(tex, rfilter='gaussian', same_place=True))
     a = np.array(mi.render(scene, sensor=1, spp=2, seed=3))
-    b = np.array(mi.render(mi.load_dict(alone), spp=2, seed=3))
+    b = np.array(mi.render(mi.load_dict(scene_dict(tex, rfilter='gaussian')), spp=2, seed=3))
     assert a.shape[:2] == (RES[1], RES[0]) and b.mean() > 0.05
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
 

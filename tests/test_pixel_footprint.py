@@ -306,15 +306,18 @@ def test_silhouette_spp_has_no_effect_with_the_sample_footprint(rng):
 
 
 # ------------------------------------------------------------------ found by mutation testing
-def two_sensor_scene(tex, rfilter='box'):
-    """``scene_dict`` with a first sensor that looks at the plane from elsewhere (another film
-    size too); the scene's own sensor is the second."""
+def two_sensor_scene(tex, rfilter='box', same_place=False):
+    """``scene_dict`` with a first sensor that looks at the plane from elsewhere (or, with
+    ``same_place``, from the second's pose) with another field of view and film size; the
+    scene's own sensor is the second."""
     d = scene_dict(tex, rfilter=rfilter)
     first = {'type': 'perspective', 'fov': 60,
              'to_world': T().look_at([-1.8, 2.2, 1.0], [0.4, 0, -0.8], [0, 1, 0]),
              'film': {'type': 'hdrfilm', 'width': 20, 'height': 20,
                       'rfilter': {'type': rfilter}},
              'sampler': {'type': 'independent', 'sample_count': 1}}
+    if same_place:
+        first['to_world'] = d['sensor']['to_world']
     return {'type': 'scene', 'first': first,
             **{k: v for k, v in d.items() if k != 'type'}}
 
