@@ -98,8 +98,26 @@ def refract_differential(wo, wi, n, dndx, dwodx, eta):
     return wi - inv_eta * dwodx + (mu * dndx + dmudx * n)
 
 
+def camera_differential_defined(ray) -> mi.Bool:
+    """Per lane, does a sensor's ``RayDifferential3f`` hold a differential? Sensors that define
+    none (``radiancemeter``, ``irradiancemeter``, ``distant``) leave the offset rays zero, and
+    ``batch`` defines them per sub-sensor but reports ``has_differentials`` false (the flag does
+    not survive its call to the sub-sensor), so the offset directions, unit vectors where they
+    exist, decide."""
+    return (dr.squared_norm(mi.Vector3f(ray.d_x)) > 0) & (dr.squared_norm(mi.Vector3f(ray.d_y)) > 0)
+
+
+def _no_common_frame(sensor) -> bool:
+    """A ``batch`` sensor's sub-sensors look from different places: no one camera frame to place
+    the camera approximation in (its hits after bounces get a zero footprint)."""
+    return sensor.class_name() == 'BatchSensor'
+
+
 class CameraFootprint:
-    """pbrt-v4 ``FindMinimumDifferentials`` + ``Approximate_dp_dxy`` for a Mitsuba sensor."""
+    """pbrt-v4 ``FindMinimumDifferentials`` + ``Approximate_dp_dxy`` for a Mitsuba sensor: the
+    smallest one-pixel differentials of the sensor's rays that have one (orthographic cameras:
+    constant origin offsets and no spread; perspective: the reverse); zero where the sensor
+    defines none."""
 
     SAMPLES = 512
 
@@ -119,16 +137,23 @@ class CameraFootprint:
         frame = mi.Frame3f(d)
         dxf = dr.normalize(frame.to_local(dr.normalize(ray.d_x))) - mi.Vector3f(0, 0, 1)
         dyf = dr.normalize(frame.to_local(dr.normalize(ray.d_y))) - mi.Vector3f(0, 0, 1)
-        self.min_pos_x, self.min_pos_y, self.min_dir_x, self.min_dir_y = \
-            self._shortest((dox, doy, dxf, dyf))
+        # rays without a differential take no part (none: a zero footprint after bounces)
+        defined = camera_differential_defined(ray) & (not _no_common_frame(sensor))
+        self.min_pos_x, self.min_pos_y, self.min_dir_x, self.min_dir_y = self._shortest(
+            [dr.select(defined, v, dr.inf) for v in (dox, doy, dxf, dyf)])
+        # none (all zero): no footprint at all, not the rounding of placing a zero one at p
+        self.exists = ((dr.squared_norm(self.min_pos_x) + dr.squared_norm(self.min_dir_x) > 0)
+                       & (dr.squared_norm(self.min_pos_y) + dr.squared_norm(self.min_dir_y) > 0))
 
     @staticmethod
     def _shortest(vectors) -> list:
-        """For each array of vectors (all of one width n), its shortest finite vector (the first
+        """For each array of vectors (of width n, or 1 for a constant), its shortest finite vector (the first
         one on ties; 0 if none is finite), found on the device in two block reductions — no
         read-back, so a frozen function can record it, and few kernel launches per render."""
-        n = dr.width(vectors[0])
-        v = mi.Vector3f(*(dr.concat([u[i] for u in vectors]) for i in range(3)))
+        n = max(dr.width(u) for u in vectors)
+        # a sensor's constant differentials (orthographic: every ray's d_x is d) are one lane wide
+        v = mi.Vector3f(*(dr.concat([dr.zeros(mi.Float, n) + u[i] for u in vectors])
+                          for i in range(3)))
         length2 = dr.select(dr.all(dr.isfinite(v)), dr.squared_norm(v), dr.inf)
         shortest = dr.block_reduce(dr.ReduceOp.Min, length2, n)
         index = dr.arange(mi.UInt32, len(vectors) * n)
@@ -142,7 +167,7 @@ class CameraFootprint:
         cam = self.from_world
         p_cam = mi.Vector3f(cam @ mi.Point3f(p))
         dist = dr.norm(p_cam)
-        ok = active & (dist > 0)
+        ok = active & (dist > 0) & self.exists
         frame = mi.Frame3f(dr.normalize(dr.select(ok, p_cam, mi.Vector3f(0, 0, 1))))
         n_down = frame.to_local(mi.Vector3f(cam @ mi.Normal3f(n)))
         p_down = mi.Vector3f(0, 0, dist)
@@ -177,12 +202,14 @@ class RayDiff:
 
     @staticmethod
     def of_camera_ray(ray, scale) -> 'RayDiff':
-        """The sensor's one-pixel differential of ``ray``, scaled by ``scale`` (detached)."""
+        """The sensor's one-pixel differential of ``ray``, scaled by ``scale`` (detached); valid
+        where the sensor defines one (:func:`camera_differential_defined`)."""
         o, d = mi.Point3f(dr.detach(ray.o)), mi.Vector3f(dr.detach(ray.d))
         return RayDiff(dr.fma(mi.Point3f(dr.detach(ray.o_x)) - o, scale, o),
                        dr.fma(mi.Vector3f(dr.detach(ray.d_x)) - d, scale, d),
                        dr.fma(mi.Point3f(dr.detach(ray.o_y)) - o, scale, o),
-                       dr.fma(mi.Vector3f(dr.detach(ray.d_y)) - d, scale, d), mi.Bool(True))
+                       dr.fma(mi.Vector3f(dr.detach(ray.d_y)) - d, scale, d),
+                       camera_differential_defined(dr.detach(ray)))
 
     def fields(self) -> tuple:
         return self.o_x, self.d_x, self.o_y, self.d_y, self.valid

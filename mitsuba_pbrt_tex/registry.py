@@ -64,10 +64,17 @@ def variant_class(impl: type, base: type) -> type:
     return type(impl.__name__, (base,), namespace)
 
 
+def ad_integrators_common():
+    """The current variant's ``common`` module of Mitsuba's AD integrators (``RBIntegrator``,
+    ``mis_weight``, …). Mitsuba reloads ``mitsuba.python.ad.integrators`` at every
+    ``mi.set_variant`` (before variant callbacks run), while its alias ``mitsuba.ad.integrators``
+    stays bound to the first variant imported: classes from there fail in any later variant."""
+    return importlib.import_module('mitsuba.python.ad.integrators.common')
+
+
 def _integrator_base() -> type:
     if variants.support_problem(mi.variant()) is None:
-        from mitsuba.ad.integrators.common import RBIntegrator
-        return RBIntegrator
+        return ad_integrators_common().RBIntegrator
     return mi.SamplingIntegrator
 
 

@@ -163,6 +163,17 @@ class PbrtTexture:
     def is_spatially_varying(self) -> bool:
         return True
 
+    def sample_spectrum(self, si, sample, active=True):
+        """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as
+        Mitsuba's ``bitmap`` — what light tracing (``ptracer``) and an emitter's ``sample_ray``
+        ask of a radiance texture."""
+        return type(si.wavelengths)(), self.eval(si, active)
+
+    def pdf_spectrum(self, si, active=True):
+        """RGB and mono variants: no wavelengths are sampled, so the density is empty
+        (``bitmap`` raises NotImplementedError here)."""
+        return type(si.wavelengths)()
+
     def prepare_differentials(self) -> bool:
         """Called by ``pbrt_path`` before rendering: does this texture use differentials?"""
         return any(uses_differentials(t) for t in self._nested.values())

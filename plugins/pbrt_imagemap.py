@@ -477,13 +477,3 @@ class Plugin(PbrtTexture):
 
     def pdf_position(self, p, active=True):
         return self._position_sampler().pdf(mi.Point2f(p), mi.Bool(active))
-
-    def sample_spectrum(self, si, sample, active=True):
-        """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as
-        ``bitmap`` (light tracing and emitters' ``sample_ray`` call this)."""
-        return type(si.wavelengths)(), self.eval(si, active)
-
-    def pdf_spectrum(self, si, active=True):
-        """RGB and mono variants: no wavelengths are sampled, so the density is empty
-        (``bitmap`` raises NotImplementedError here)."""
-        return type(si.wavelengths)()

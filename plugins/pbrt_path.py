@@ -62,7 +62,7 @@ Samples per pixel: the footprint uses the spp of the ``mi.render`` call, or the 
 
 Relation to Mitsuba 3.9's ``prb``: :meth:`Plugin.sample` follows ``prb.sample`` stage by stage
 and imports Mitsuba's helpers (``mis_weight``, ``solid_angle_to_area_jacobian`` from
-``mitsuba.ad.integrators.common``) rather than copying them, so with ``texture_differentials``
+``mitsuba.python.ad.integrators.common``, the current variant's) rather than copying them, so with ``texture_differentials``
 false, or no texture that reads differentials, it renders and differentiates exactly as ``prb``
 (same random numbers; ``tests/test_gradient_workflows.py`` compares gradients). It differs only
 where differentials need it:
@@ -102,7 +102,7 @@ where differentials need it:
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex import pixel, raydiff, variants
+from mitsuba_pbrt_tex import pixel, raydiff, registry, variants
 from mitsuba_pbrt_tex.params import Params, PluginError
 from mitsuba_pbrt_tex.raydiff import RayDiff
 from mitsuba_pbrt_tex.texture import uses_differentials
@@ -112,9 +112,9 @@ MAX_DEPTH = 2**31 - 1
 
 
 def _prb_helpers():
-    """Mitsuba's own AD-integrator helpers (imported when a supported variant is set)."""
-    from mitsuba.ad.integrators.common import mis_weight, solid_angle_to_area_jacobian
-    return mis_weight, solid_angle_to_area_jacobian
+    """Mitsuba's own AD-integrator helpers, the current variant's."""
+    common = registry.ad_integrators_common()
+    return common.mis_weight, common.solid_angle_to_area_jacobian
 
 FOOTPRINTS = ('sample', 'pixel')
 PIXEL_SENSORS = ('PerspectiveCamera',)
@@ -436,7 +436,9 @@ class Plugin:
         want, scale, camera, specular_scene, reader_shapes = prep
 
         # ---- differentials: the camera ray's, scaled for the sample count --------------------
-        if dr.hint(want and bool(getattr(ray, 'has_differentials', False)), mode='scalar'):
+        # every sensor's rays are RayDifferential3f; batch ones hold differentials without
+        # has_differentials, so each lane's own decide (RayDiff.of_camera_ray)
+        if dr.hint(want and isinstance(ray, mi.RayDifferential3f), mode='scalar'):
             camera_diff = RayDiff.of_camera_ray(ray, scale)
         else:
             camera_diff = RayDiff()

@@ -103,3 +103,63 @@ def test_register_needs_a_variant(monkeypatch):
     monkeypatch.setattr(mi, 'variant', lambda: None)
     with pytest.raises(RuntimeError, match='no Mitsuba variant is set'):
         mpt.register()
+
+
+SWITCH_SCRIPT = r'''
+import sys
+import mitsuba_pbrt_tex as mpt
+import mitsuba as mi
+import numpy as np
+
+def render(integrator):
+    T = mi.ScalarTransform4f
+    d = {'type': 'scene', 'integrator': integrator,
+         'sensor': {'type': 'perspective', 'fov': 40,
+                    'to_world': T().look_at([0, 1.5, 3], [0, 0, 0], [0, 1, 0]),
+                    'film': {'type': 'hdrfilm', 'width': 12, 'height': 8}},
+         'plane': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -90).scale(2),
+                   'bsdf': {'type': 'diffuse', 'reflectance': {
+                       'type': 'pbrt_imagemap', 'filename': 'scenes/textures/checker.png',
+                       'filter': 'ewa'}}},
+         'light': {'type': 'rectangle', 'to_world': T().translate([0, 2, 0]).rotate([1, 0, 0], 90),
+                   'emitter': {'type': 'area', 'radiance': {'type': 'pbrt_constant',
+                                                            'value': 3.0}}}}
+    scene = mi.load_dict(d)
+    assert scene.integrator() is not None, (mi.variant(), integrator)
+    img = np.array(mi.render(scene, spp=4))
+    assert img.shape[:2] == (8, 12) and np.isfinite(img).all() and img.mean() > 0.01, img.mean()
+    return img.mean()
+
+for variant in sys.argv[1:]:
+    mi.set_variant(variant)
+    mpt.register()
+    for integrator in ({'type': 'pbrt_path'}, {'type': 'moment', 'inner': {'type': 'pbrt_path'}},
+                       {'type': 'ptracer', 'max_depth': 3}, {'type': 'prb'}):
+        print(variant, integrator['type'], render(integrator))
+'''
+
+
+@pytest.mark.parametrize('order', [('llvm_ad_rgb', 'llvm_ad_mono', 'llvm_ad_rgb'),
+                                   ('llvm_ad_mono', 'llvm_ad_rgb')])
+def test_every_variant_a_process_switches_to_renders(order, tmp_path):
+    """A fresh process (the first variant a process sets is what matters) switches variants and
+    renders a scene of our textures — an EWA image on the floor, a textured area light — with
+    ``pbrt_path``, ``pbrt_path`` inside Mitsuba's ``moment``, Mitsuba's ``ptracer`` and ``prb``
+    in each. Before, ``pbrt_path`` took its base class from ``mitsuba.ad.integrators``, which
+    stays bound to the first variant: in the second, scenes had no integrator."""
+    import subprocess
+    import sys
+    script = tmp_path / 'switch.py'
+    script.write_text(SWITCH_SCRIPT)
+    out = subprocess.run([sys.executable, str(script), *order], capture_output=True, text=True,
+                         timeout=600, cwd=str(__import__('pathlib').Path(__file__).parents[1]))
+    assert out.returncode == 0, out.stderr[-3000:]
+    means = {}
+    for line in out.stdout.splitlines():
+        if 'llvm_ad_' in line:
+            variant, integrator, mean = line[line.index('llvm_ad_'):].split()
+            means.setdefault((variant, integrator), []).append(float(mean))
+    assert len(means) == 4 * len(set(order)), out.stdout
+    # a variant set again renders exactly what it rendered the first time (same seed)
+    for (variant, _), values in means.items():
+        assert len(values) == order.count(variant) and len(set(values)) == 1, means
