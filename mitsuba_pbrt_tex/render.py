@@ -174,13 +174,18 @@ def error_line(e: BaseException) -> str:
 def _set_variant(variant: str) -> None:
     import mitsuba as mi
 
-    from .variants import support_problem
+    from .variants import backend_available, support_problem, usable_variants
     if variant not in mi.variants():
         raise RenderError(f'unknown --variant "{variant}"; variants of this Mitsuba build: '
                           f'{", ".join(mi.variants())}')
     problem = support_problem(variant)
     if problem:
         raise RenderError(f'--variant {variant}: {problem}')
+    if not backend_available(variant):
+        device = 'no CUDA device (GPU and driver)' if variant.startswith('cuda') else \
+            'no usable libLLVM (>= 17)'
+        raise RenderError(f'--variant {variant}: Dr.Jit finds {device} on this machine; '
+                          f'variants that work here: {", ".join(usable_variants()) or "none"}')
     try:
         mi.set_variant(variant)
     except Exception as e:

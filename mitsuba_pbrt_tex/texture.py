@@ -15,6 +15,7 @@ variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single bas
 
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 
 from . import variants
@@ -207,6 +208,16 @@ def _short(obj) -> str:
         text = type(obj).__name__
     text = ' '.join(text.split())
     return text if len(text) < 80 else text[:77] + '...'
+
+
+#: float32's largest finite value
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+def finite_range(x):
+    """``x`` with ±inf from an overflowing product or sum made ±FLOAT32_MAX (NaN stays NaN:
+    what produces one must avoid it)."""
+    return dr.clip(x, -FLOAT32_MAX, FLOAT32_MAX)
 
 
 def nested_mean(tex: mi.Texture) -> mi.Float:

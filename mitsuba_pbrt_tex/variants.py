@@ -47,3 +47,19 @@ def rgb_to_spectrum(rgb: mi.Color3f) -> mi.UnpolarizedSpectrum:
     if mi.is_monochromatic:
         return mi.UnpolarizedSpectrum(mi.luminance(rgb))
     return mi.UnpolarizedSpectrum(rgb)
+
+
+def backend_available(variant: str) -> bool:
+    """Can Dr.Jit run ``variant``'s backend on this machine (a CUDA device for ``cuda_*``, a
+    usable libLLVM for ``llvm_*``)? Scalar variants need none."""
+    import drjit as dr
+    if variant.startswith('cuda'):
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    if variant.startswith('llvm'):
+        return bool(dr.has_backend(dr.JitBackend.LLVM))
+    return True
+
+
+def usable_variants() -> list[str]:
+    """The variants of this Mitsuba build that the plugins support and this machine can run."""
+    return [v for v in mi.variants() if support_problem(v) is None and backend_available(v)]

@@ -90,6 +90,7 @@ reconstruction at the selected level(s).
 """
 
 import math
+import os
 import threading
 
 import drjit as dr
@@ -102,7 +103,8 @@ from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
                                     parse_encoding, release_build_temporaries, warn_clamped)
 from mitsuba_pbrt_tex.mapping import mapping_2d
-from mitsuba_pbrt_tex.mipmap import FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid, build_pyramid
+from mitsuba_pbrt_tex.mipmap import (FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid, build_pyramid,
+                                     sanitized)
 from mitsuba_pbrt_tex.params import PluginError
 from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
                                        uv_axes)
@@ -185,7 +187,12 @@ class Plugin(PbrtTexture):
             self.data, self.source = self._checked_tensor(p.raw('data'), p), 'data tensor'
         elif source == 'filename':
             name = p.string('filename', None)
+            if not name.strip():
+                raise p.error('filename', 'value "" is empty; expected the path of an image file')
             path = str(mi.file_resolver().resolve(name))
+            if os.path.isdir(path):
+                raise p.error('filename', f'"{path}" is a directory; expected the path of an '
+                                          f'image file')
             self._shared = self._call(lambda: load_image(path, encoding), 'filename')
             # our own tensor object over the shared texels, so in-place updates stay ours
             self.data, self.source = mi.TensorXf(self._shared.tensor), name
@@ -351,7 +358,7 @@ class Plugin(PbrtTexture):
         return int(self.data.shape[2])
 
     def mean(self):
-        texels = self.data.array
+        texels = sanitized(self.data.array)     # as the pyramid holds them (NaN → 0, ±1e38)
         if self.channels == 3:
             texels = mi.luminance(dr.gather(mi.Color3f, texels,
                                             dr.arange(mi.UInt32, dr.width(texels) // 3)))

@@ -7,13 +7,15 @@
 | amount | float, texture | 0.5 | the blend weight (a float texture, so an rgb value is refused; not clamped) | yes |
 
 ``(1 - amount)·tex1 + amount·tex2``; like pbrt-v4, ``tex1`` is not evaluated where amount = 1 and
-``tex2`` not where amount = 0.
+``tex2`` not where amount = 0. Evaluated as ``tex1 + amount·(tex2 - tex1)``, which is exact where
+the two are equal whatever the amount (pbrt's form gives NaN for an amount of 3e38 and two equal
+values of 2: -inf + inf); a result beyond float32's range is float32's largest finite value.
 """
 
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, nested_mean
+from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, finite_range, nested_mean
 
 
 class Plugin(PbrtTexture):
@@ -29,9 +31,10 @@ class Plugin(PbrtTexture):
         use1, use2 = amount != 1, amount != 0
         t1 = self.nested_eval('tex1', si, kind, active & use1)
         t2 = self.nested_eval('tex2', si, kind, active & use2)
-        return dr.select(use1, (1 - amount) * t1, 0) + dr.select(use2, amount * t2, 0)
+        both = dr.fma(amount, t2 - t1, t1)
+        return finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
 
     def mean(self):
         a = nested_mean(self._nested['amount'])
-        return mi.Float((1 - a) * nested_mean(self._nested['tex1'])
-                        + a * nested_mean(self._nested['tex2']))
+        m1 = nested_mean(self._nested['tex1'])
+        return finite_range(mi.Float(dr.fma(a, nested_mean(self._nested['tex2']) - m1, m1)))

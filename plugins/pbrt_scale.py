@@ -6,13 +6,14 @@
 | scale | float, texture | 1 | the factor (evaluated as a float texture, so an rgb value is refused) | yes |
 
 Where ``scale`` is 0 the result is 0 and ``tex`` is not evaluated (pbrt-v4), so an infinite or NaN
-``tex`` there cannot leak into the image.
+``tex`` there cannot leak into the image. A product beyond float32's range (``scale`` 3e38 times 2)
+is float32's largest finite value of that sign, not inf.
 """
 
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, nested_mean
+from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, finite_range, nested_mean
 
 
 class Plugin(PbrtTexture):
@@ -26,7 +27,8 @@ class Plugin(PbrtTexture):
         sc = self.nested_eval('scale', si, FLOAT, active)
         nonzero = sc != 0
         value = self.nested_eval('tex', si, kind, active & nonzero)
-        return dr.select(nonzero, value * sc, 0)
+        return dr.select(nonzero, finite_range(value * sc), 0)
 
     def mean(self):
-        return mi.Float(nested_mean(self._nested['tex']) * nested_mean(self._nested['scale']))
+        return finite_range(mi.Float(nested_mean(self._nested['tex'])
+                                     * nested_mean(self._nested['scale'])))

@@ -3,7 +3,7 @@
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
 | texture | texture | — | the texture to antialias (ours or any Mitsuba texture) | yes |
-| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata), at most 65536; they spread over at most 1024 texture units per differential | no |
+| samples | integer | 16 | lookups per evaluation, a perfect square n² (n×n strata), at most 65536; they spread over at most 1024 texture units per differential, at uv within ±2^17 | no |
 
 The footprint is the parallelogram spanned by the texture differentials: with offsets
 ``(a, b) ∈ [-1/2, 1/2]²`` the wrapped texture is evaluated at ``uv + a·duv/dx + b·duv/dy`` and
@@ -11,7 +11,10 @@ The footprint is the parallelogram spanned by the texture differentials: with of
 the stratum (``duv/n``), and the results are averaged — a box filter over the pixel, computed by
 the midpoint rule. Deterministic; with zero differentials (Mitsuba's integrators) it equals the
 wrapped texture. Each differential component is limited to ±1024 texture units (non-finite ones
-count as 0), so the offsets stay where nested textures such as Mitsuba's ``bitmap`` are defined.
+count as 0), and the coordinates handed to the nested texture are finite: NaN → 0, uv within
+±2^17 and p within ±1e8, so the sub-samples stay where nested textures such as Mitsuba's
+``bitmap`` are defined (it returns NaN where uv times its resolution overflows an int32: uv of
+1e30 or inf; ±2^17 is safe up to 16384-texel-wide images).
 """
 
 import math
@@ -32,9 +35,20 @@ MAX_SAMPLES = 65536
 MAX_FOOTPRINT = 1024.0
 
 
+#: uv handed to the nested texture is limited to ±UV_LIMIT: Mitsuba's ``bitmap`` overflows
+#: int32 beyond 2^31 / resolution. Positions are limited to ±P_LIMIT, as pbrt_uv's coordinates.
+UV_LIMIT = 2.0**17
+P_LIMIT = 1e8
+
+
 def _footprint(x):
     """A (sanitized) uv partial limited to ±MAX_FOOTPRINT."""
     return dr.clip(x, -MAX_FOOTPRINT, MAX_FOOTPRINT)
+
+
+def _coordinate(x, limit):
+    """NaN → 0, then within ±limit."""
+    return dr.clip(dr.select(dr.isnan(x), 0.0, x), -limit, limit)
 
 
 class Plugin(PbrtTexture):
@@ -66,8 +80,8 @@ class Plugin(PbrtTexture):
             a = (mi.Float(k % n) + 0.5) / n - 0.5
             b = (mi.Float(k // n) + 0.5) / n - 0.5
             sub = mi.SurfaceInteraction3f(si)
-            sub.uv = uv + a * duv_dx + b * duv_dy
-            sub.p = p + a * dp_dx + b * dp_dy
+            sub.uv = mi.Point2f(_coordinate(uv + a * duv_dx + b * duv_dy, UV_LIMIT))
+            sub.p = mi.Point3f(_coordinate(p + a * dp_dx + b * dp_dy, P_LIMIT))
             sub.duv_dx = duv_dx / n
             sub.duv_dy = duv_dy / n
             return k + 1, acc + kind.nested(tex, sub, active)
