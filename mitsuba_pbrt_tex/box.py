@@ -54,6 +54,7 @@ pbrt does beyond the top level.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -274,16 +275,101 @@ def _single_cell(mip, level, st, e0, e1, active):
     return centre + (f00 - f10 - f01 + f11) * twist
 
 
+@dataclass
+class _Frame:
+    """One lane's footprint in the integration frame (X along the table rows, Y across them:
+    bands): the level and its tables (``base``, knots ``N``, ``K`` per row, ``R`` rows), the
+    corners' centre ``(cx, cy)`` and edge vectors ``(ax, ay)``, ``(bx, by)`` in table positions,
+    and which lanes take which path (``run``: the band loop; ``in_cell``, ``degenerate``,
+    ``beyond``: closed forms)."""
+    level: object
+    columns: object
+    N: object
+    K: object
+    R: object
+    base: object
+    cx: object
+    cy: object
+    ax: object
+    ay: object
+    bx: object
+    by: object
+    run: object
+    in_cell: object
+    degenerate: object
+    beyond: object
+
+
+@dataclass
+class _Edge:
+    """One edge of the parallelogram from ``(xa, ya)``: its y range ``[lo, hi]``, the bands
+    ``j0 … j1`` it crosses, its slope dx/dy and orientation (``sign``: +1 upwards)."""
+    xa: object
+    ya: object
+    lo: object
+    hi: object
+    j0: object
+    j1: object
+    slope: object
+    sign: object
+
+
+@dataclass
+class _Piece:
+    """An edge's piece in one band, as coefficients on the knot data of its two cells ``ia``,
+    ``ib`` (``same``: one cell) and on the row totals: ``i1`` for ∫Q dy and ``it`` for ∫τ·Q dy
+    (13-tuples, None for 0); which table entries it needs (``long_piece``: Q2, Q3; ``need_t``,
+    ``need_su``: the periodic totals)."""
+    i1: tuple
+    it: tuple
+    ia: object
+    ib: object
+    same: object
+    long_piece: object
+    need_t: object
+    need_su: object
+
+
 def box(mip, tables: BoxTables, st, dst0, dst1, active):
     """The exact box-filtered value at ``st`` for the footprint spanned by ``dst0 = (ds/dx,
     dt/dx)`` and ``dst1 = (ds/dy, dt/dy)``: Float (1 channel) or Color3f (RGB)."""
     if not mip.has_pyramid:
         raise ValueError('the box filter needs every level of the MIP pyramid')
-    wrap = tables.wrap
     c = 3 if mip.channels == 3 else 1
     T64 = mi.Array4d if c == 3 else mi.Float64          # RGB tables are RGBA: packet gathers
-    periodic = wrap in ('repeat', 'mirror')
     active = mi.Bool(active)
+    f = _frame(mip, tables, st, dst0, dst1, active)
+    edges = _edges(f)
+    periodic = tables.wrap in ('repeat', 'mirror')
+
+    def cond(e, j, acc):
+        return f.run & (e < 4)
+
+    def body(e, j, acc):
+        edge = _pick(edges, e)
+        on = f.run & (j <= edge.j1)
+        acc = acc + _band_piece(tables, f, edge, j, on, periodic, T64)
+        next_edge = j + 1 > edge.j1
+        e = dr.select(next_edge, e + 1, e)
+        j = dr.select(next_edge, _pick(edges, dr.minimum(e, 3)).j0, j + 1)
+        return e, j, acc
+
+    _, _, acc = dr.while_loop((mi.UInt32(0), mi.Float64(edges[0].j0), dr.zeros(T64)), cond,
+                              body, max_iterations=-1, label='pbrt_box')
+    cross = f.ax * f.by - f.ay * f.bx                       # > 0: corners counter-clockwise
+    value = acc / dr.select(f.run, cross, 1.0)
+    result = mip.value_type()(value.x, value.y, value.z) if c == 3 else mi.Float(value)
+    result = dr.select(f.run, result, 0)
+    cell = _single_cell(mip, f.level, st, (f.ax, f.ay), (f.bx, f.by), f.in_cell)
+    result = dr.select(f.in_cell, cell, result)
+    result = dr.select(f.degenerate, mip.bilinear(0, st, active & f.degenerate), result)
+    coarse = f.beyond & ~f.degenerate & ~f.in_cell
+    return dr.select(coarse, mip.coarsest(active & coarse), result)
+
+
+def _frame(mip, tables, st, dst0, dst1, active) -> _Frame:
+    """The level, the integration axis and the footprint in table positions, per lane."""
+    wrap = tables.wrap
     W, H = float(mip.width), float(mip.height)
     s0, t0 = _finite64(dst0.x), _finite64(dst0.y)
     s1, t1 = _finite64(dst1.x), _finite64(dst1.y)
@@ -293,12 +379,10 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     degenerate = ~(area0 > MIN_AREA)
     columns = ex0 < ey0                                     # integrate along t, bands in s
     band0 = dr.minimum(ex0, ey0)
-    last = len(mip.sizes) - 1
     want = dr.ceil(dr.log2(mi.Float(dr.maximum(band0, 1e-30)) / MAX_BANDS))
-    level = mi.UInt32(dr.clip(want, 0, last))
+    level = mi.UInt32(dr.clip(want, 0, len(mip.sizes) - 1))
     view = mip.view(level)
     w, h = mi.Float64(view.size[0]), mi.Float64(view.size[1])
-
     sx = mi.Float64(dr.clip(dr.select(dr.isfinite(st.x), st.x, 0), -COORD_LIMIT, COORD_LIMIT))
     sy = mi.Float64(dr.clip(dr.select(dr.isfinite(st.y), st.y, 0), -COORD_LIMIT, COORD_LIMIT))
     cx, cy = sx * w - 0.5, sy * h - 0.5
@@ -307,8 +391,7 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     hex_, hey = 0.5 * (dr.abs(ax) + dr.abs(bx)), 0.5 * (dr.abs(ay) + dr.abs(by))
     in_cell = ((dr.floor(cx - hex_) == dr.floor(cx + hex_))
                & (dr.floor(cy - hey) == dr.floor(cy + hey)) & ~degenerate & active)
-
-    # the footprint in the integration frame (X along the table rows, Y across: bands)
+    # the integration frame: X along the table rows, Y across them
     L = dr.select(columns, h, w)                            # texels along a table row
     R = dr.select(columns, w, h)                            # rows
     cx, cy = dr.select(columns, cy, cx), dr.select(columns, cx, cy)
@@ -316,165 +399,147 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     bx, by = dr.select(columns, by, bx), dr.select(columns, bx, by)
     n_mul, origin = {'repeat': (1, 0), 'mirror': (2, 0), 'clamp': (1, -1), 'black': (1, -1)}[wrap]
     N = L * n_mul + (1 if origin else 0)
-    K = mi.UInt32(N) + 1
-    if periodic:
+    if wrap in ('repeat', 'mirror'):
         # whole periods change nothing: centre the footprint in the first one (X and Y)
         cx = cx - dr.floor(cx / N) * N
         ry = R * n_mul
         cy = cy - dr.floor(cy / ry) * ry
     cx = cx - origin                                        # table positions
-    extent_x = dr.abs(ax) + dr.abs(bx)
-    extent_y = dr.abs(ay) + dr.abs(by)
-    beyond = (extent_y > 4 * MAX_BANDS) | (extent_x > MAX_EXTENT)
+    beyond = ((dr.abs(ay) + dr.abs(by) > 4 * MAX_BANDS)
+              | (dr.abs(ax) + dr.abs(bx) > MAX_EXTENT))
     run = active & ~degenerate & ~beyond & ~in_cell
     base = dr.gather(mi.UInt32, tables.base, 2 * level + mi.UInt32(columns), run)
-    Rf = mi.Float(R)
+    return _Frame(level, columns, N, mi.UInt32(N) + 1, mi.Float(R), base, cx, cy, ax, ay, bx,
+                  by, run, in_cell, degenerate, beyond)
 
-    # the four corners, counter-clockwise when ``cross`` > 0
-    hx0, hy0, hx1, hy1 = 0.5 * ax, 0.5 * ay, 0.5 * bx, 0.5 * by
+
+def _edges(f: _Frame) -> list:
+    """The parallelogram's four edges, counter-clockwise when ``ax·by - ay·bx`` > 0."""
+    hx0, hy0, hx1, hy1 = 0.5 * f.ax, 0.5 * f.ay, 0.5 * f.bx, 0.5 * f.by
+    cx, cy = f.cx, f.cy
     corners = [(cx - hx0 - hx1, cy - hy0 - hy1), (cx + hx0 - hx1, cy + hy0 - hy1),
                (cx + hx0 + hx1, cy + hy0 + hy1), (cx - hx0 + hx1, cy - hy0 + hy1)]
-    cross = ax * by - ay * bx
     edges = []
     for e in range(4):
         (xa, ya), (xb, yb) = corners[e], corners[(e + 1) % 4]
         flat = ya == yb
         lo, hi = dr.minimum(ya, yb), dr.maximum(ya, yb)
         j0 = dr.floor(lo)
-        j1 = dr.select(flat, j0 - 1, dr.ceil(hi) - 1)
-        slope = dr.select(flat, 0.0, (xb - xa) / (yb - ya))
-        sign = dr.select(yb > ya, 1.0, -1.0)
-        edges.append((xa, ya, lo, hi, j0, j1, slope, sign))
+        edges.append(_Edge(xa, ya, lo, hi, j0, dr.select(flat, j0 - 1, dr.ceil(hi) - 1),
+                           dr.select(flat, 0.0, (xb - xa) / (yb - ya)),
+                           dr.select(yb > ya, 1.0, -1.0)))
+    return edges
 
-    def pick(e, field):
-        out = edges[3][field]
+
+def _pick(edges, e) -> _Edge:
+    """Edge number ``e`` (per lane) of the four."""
+    fields = {}
+    for name in _Edge.__dataclass_fields__:
+        out = getattr(edges[3], name)
         for k in (2, 1, 0):
-            out = dr.select(e == k, edges[k][field], out)
-        return out
+            out = dr.select(e == k, getattr(edges[k], name), out)
+        fields[name] = out
+    return _Edge(**fields)
 
-    def coefficients(x0, x1, y0, y1, j, slope):
-        """Scalar coefficients of ∫Q dy and ∫τ·Q dy over the piece on the knot data of cells
-        a and b and on the row totals (the same for both rows of the band)."""
-        dy = y1 - y0
-        ta, tb = y0 - j, y1 - j
-        delta = x1 - x0
-        long_piece = dr.abs(delta) >= 1
-        # short pieces: cut at the one knot they may cross, two Gauss points per part
-        knot = dr.floor(dr.maximum(x0, x1))
-        crosses = (knot > dr.minimum(x0, x1)) & ~long_piece
-        ym = dr.select(crosses, y0 + (knot - x0) / dr.select(crosses, slope, 1.0), y1)
-        ym = dr.clip(ym, y0, y1)
-        parts = ((y0, ym), (ym, y1))
-        mids = [x0 + ((p0 + p1) * 0.5 - y0) * slope for p0, p1 in parts]
-        ia, ka = _cell(dr.select(long_piece, x0, mids[0]), N, periodic)
-        ib, kb = _cell(dr.select(long_piece, x1, mids[1]), N, periodic)
-        zero = mi.Float64(0)
-        # long pieces: closed forms from Q, Q2, Q3 at both ends, periods counted from ka
-        qa, q2a, q3a = _basis(x0, ia, ka, zero, N, periodic, 3)
-        qb, q2b, q3b = _basis(x1, ib, kb, kb - ka, N, periodic, 3)
-        qg = _basis(x0, ia, ka, ka, N, periodic, 1)[0]          # Q(x0), periods from 0
-        # a-cell coefficients in slots 0-4, b-cell in 5-9, totals 10-12
-        def a(vec):
-            return vec[:5] + (None,) * 5 + vec[5:]
 
-        def b(vec):
-            return (None,) * 5 + vec[:5] + vec[5:]
+def _band_piece(tables, f: _Frame, edge: _Edge, j, on, periodic, T64):
+    """∫ F dy along ``edge`` over band ``j`` (lanes ``on``)."""
+    y0, y1 = dr.maximum(edge.lo, j), dr.minimum(edge.hi, j + 1)
+    x0 = edge.xa + (y0 - edge.ya) * edge.slope
+    x1 = edge.xa + (y1 - edge.ya) * edge.slope
+    piece = _coefficients(f.N, periodic, x0, x1, y0, y1, j, edge.slope)
+    w_j = tuple(_sub(p, q) for p, q in zip(piece.i1, piece.it))     # row j: ∫(1-τ)Q
+    r0, v0 = _wrapped_row(j, f.R, tables.wrap)
+    r1, v1 = _wrapped_row(j + 1, f.R, tables.wrap)
+    total = (_row_value(tables, f, w_j, r0, on & v0, piece, periodic, T64)
+             + _row_value(tables, f, piece.it, r1, on & v1, piece, periodic, T64))
+    return dr.select(on, edge.sign * total, 0)
 
-        inv_b = dr.select(long_piece, dy / dr.select(long_piece, delta, 1.0), 0.0)
-        d2 = _lin((None, b(q2b)), (-1.0, a(q2a)), (-delta, a(qa)))
-        d3 = _lin((None, b(q3b)), (-1.0, a(q3a)), (-delta, a(q2a)), (-0.5 * delta * delta, a(qa)))
-        base_t = (tb * tb - ta * ta) * 0.5
-        i1_long = _lin((dy, a(qg)), (inv_b, d2))
-        it_long = _lin((base_t, a(qg)), (tb * inv_b, d2), (-inv_b * inv_b, d3))
-        # short pieces: Gauss–Legendre on each part (Q with periods from 0)
-        terms1, termst = [], []
-        for (p0, p1), (ic, kc), slot in zip(parts, ((ia, ka), (ib, kb)), (a, b)):
-            half = (p1 - p0) * 0.5
-            mid = (p0 + p1) * 0.5
-            for sgn in (-1.0, 1.0):
-                yg = mid + sgn * _INV_SQRT3 * half
-                qgv = slot(_basis(x0 + (yg - y0) * slope, ic, kc, kc, N, periodic, 1)[0])
-                terms1.append((half, qgv))
-                termst.append((half * (yg - j), qgv))
-        i1_short, it_short = _lin(*terms1), _lin(*termst)
-        i1 = tuple(_sel(long_piece, p, q) for p, q in zip(i1_long, i1_short))
-        it = tuple(_sel(long_piece, p, q) for p, q in zip(it_long, it_short))
-        same = (ia == ib) & (ka == kb)
-        need_t = (ka != 0) | (kb != 0)
-        need_su = long_piece & (kb != ka)
-        return i1, it, ia, ib, same, long_piece, need_t, need_su
 
-    def row_value(coef, row, valid, ia, ib, same, long_piece, need_t, need_su):
-        start = base + row * K
-        total = dr.zeros(T64)
+def _coefficients(N, periodic, x0, x1, y0, y1, j, slope) -> _Piece:
+    """Scalar coefficients of ∫Q dy and ∫τ·Q dy over the piece on the knot data of cells
+    a and b and on the row totals (the same for both rows of the band)."""
+    dy = y1 - y0
+    ta, tb = y0 - j, y1 - j
+    delta = x1 - x0
+    long_piece = dr.abs(delta) >= 1
+    # short pieces: cut at the one knot they may cross, two Gauss points per part
+    knot = dr.floor(dr.maximum(x0, x1))
+    crosses = (knot > dr.minimum(x0, x1)) & ~long_piece
+    ym = dr.select(crosses, y0 + (knot - x0) / dr.select(crosses, slope, 1.0), y1)
+    ym = dr.clip(ym, y0, y1)
+    parts = ((y0, ym), (ym, y1))
+    mids = [x0 + ((p0 + p1) * 0.5 - y0) * slope for p0, p1 in parts]
+    ia, ka = _cell(dr.select(long_piece, x0, mids[0]), N, periodic)
+    ib, kb = _cell(dr.select(long_piece, x1, mids[1]), N, periodic)
+    zero = mi.Float64(0)
+    # long pieces: closed forms from Q, Q2, Q3 at both ends, periods counted from ka
+    qa, q2a, q3a = _basis(x0, ia, ka, zero, N, periodic, 3)
+    qb, q2b, q3b = _basis(x1, ib, kb, kb - ka, N, periodic, 3)
+    qg = _basis(x0, ia, ka, ka, N, periodic, 1)[0]          # Q(x0), periods from 0
+    inv_b = dr.select(long_piece, dy / dr.select(long_piece, delta, 1.0), 0.0)
+    d2 = _lin((None, _slot_b(q2b)), (-1.0, _slot_a(q2a)), (-delta, _slot_a(qa)))
+    d3 = _lin((None, _slot_b(q3b)), (-1.0, _slot_a(q3a)), (-delta, _slot_a(q2a)),
+              (-0.5 * delta * delta, _slot_a(qa)))
+    base_t = (tb * tb - ta * ta) * 0.5
+    i1_long = _lin((dy, _slot_a(qg)), (inv_b, d2))
+    it_long = _lin((base_t, _slot_a(qg)), (tb * inv_b, d2), (-inv_b * inv_b, d3))
+    # short pieces: Gauss–Legendre on each part (Q with periods from 0)
+    terms1, termst = [], []
+    for (p0, p1), (ic, kc), slot in zip(parts, ((ia, ka), (ib, kb)), (_slot_a, _slot_b)):
+        half = (p1 - p0) * 0.5
+        mid = (p0 + p1) * 0.5
+        for sgn in (-1.0, 1.0):
+            yg = mid + sgn * _INV_SQRT3 * half
+            qgv = slot(_basis(x0 + (yg - y0) * slope, ic, kc, kc, N, periodic, 1)[0])
+            terms1.append((half, qgv))
+            termst.append((half * (yg - j), qgv))
+    i1_short, it_short = _lin(*terms1), _lin(*termst)
+    return _Piece(tuple(_sel(long_piece, p, q) for p, q in zip(i1_long, i1_short)),
+                  tuple(_sel(long_piece, p, q) for p, q in zip(it_long, it_short)),
+                  ia, ib, (ia == ib) & (ka == kb), long_piece, (ka != 0) | (kb != 0),
+                  long_piece & (kb != ka))
 
-        def gather(i, q, mask):
-            return dr.gather(T64, tables.buffer, (start + i) * NQ + q, valid & mask)
 
-        ua, ub = mi.UInt32(ia), mi.UInt32(ib)
-        for q in range(NQ):
-            full = True if q <= _C1 else long_piece
-            ca, cb = coef[q], coef[5 + q]
-            if ca is None and cb is None:
-                continue
-            va = gather(ua, q, full)
-            if cb is None:
-                total = dr.fma(va, T64(ca), total)
-                continue
-            vb = dr.select(same, va, gather(ub, q, full & ~same))   # one cell: read once
-            if ca is not None:
-                total = dr.fma(va, T64(ca), total)
-            total = dr.fma(vb, T64(cb), total)
-        if periodic:
-            n = mi.UInt32(N)
-            for slot, q, mask in ((10, _C1, need_t | need_su), (11, _C2, need_su),
-                                  (12, _C3, need_su)):
-                if coef[slot] is not None:
-                    total = dr.fma(gather(n, q, mask), T64(coef[slot]), total)
-        return total
+def _slot_a(vec):
+    """A cell-a coefficient vector in the 13 slots (a: 0-4, b: 5-9, totals: 10-12)."""
+    return vec[:5] + (None,) * 5 + vec[5:]
 
-    def piece(e, j, on):
-        """∫ F dy along edge ``e`` over band ``j`` (lanes ``on``)."""
-        xa_e, ya_e, lo, hi, _, _, slope, sign = (pick(e, f) for f in range(8))
-        y0, y1 = dr.maximum(lo, j), dr.minimum(hi, j + 1)
-        x0 = xa_e + (y0 - ya_e) * slope
-        x1 = xa_e + (y1 - ya_e) * slope
-        i1, it, ia, ib, same, long_piece, need_t, need_su = coefficients(x0, x1, y0, y1, j,
-                                                                          slope)
-        w_j = tuple(_sub(p, q) for p, q in zip(i1, it))           # row j: ∫(1-τ)Q
-        r0, v0 = _wrapped_row(j, Rf, wrap)
-        r1, v1 = _wrapped_row(j + 1, Rf, wrap)
-        args = (ia, ib, same, long_piece, need_t, need_su)
-        total = (row_value(w_j, r0, on & v0, *args) + row_value(it, r1, on & v1, *args))
-        return dr.select(on, sign * total, 0)
 
-    e = mi.UInt32(0)
-    j = mi.Float64(edges[0][4])
+def _slot_b(vec):
+    """A cell-b coefficient vector in the 13 slots."""
+    return (None,) * 5 + vec[:5] + vec[5:]
 
-    def cond(e, j, acc):
-        return run & (e < 4)
 
-    def body(e, j, acc):
-        j1 = pick(e, 5)
-        on = run & (j <= j1)
-        acc = acc + piece(e, j, on)
-        jn = j + 1
-        next_edge = jn > j1
-        e = dr.select(next_edge, e + 1, e)
-        j = dr.select(next_edge, pick(dr.minimum(e, 3), 4), jn)
-        return e, j, acc
+def _row_value(tables, f: _Frame, coef, row, valid, piece: _Piece, periodic, T64):
+    """Σ coefficient × table entry over one row's knot data (and totals) for ``piece``."""
+    start = f.base + row * f.K
+    total = dr.zeros(T64)
 
-    _, _, acc = dr.while_loop((e, j, dr.zeros(T64)), cond, body, max_iterations=-1,
-                              label='pbrt_box')
-    value = acc / dr.select(run, cross, 1.0)
-    out_t = mip.value_type()
-    result = out_t(value.x, value.y, value.z) if c == 3 else mi.Float(value)
-    result = dr.select(run, result, 0)
-    result = dr.select(in_cell, _single_cell(mip, level, st, (ax, ay), (bx, by), in_cell),
-                       result)
-    result = dr.select(degenerate, mip.bilinear(0, st, active & degenerate), result)
-    return dr.select(beyond & ~degenerate & ~in_cell,
-                     mip.coarsest(active & beyond & ~degenerate & ~in_cell), result)
+    def gather(i, q, mask):
+        return dr.gather(T64, tables.buffer, (start + i) * NQ + q, valid & mask)
+
+    ua, ub = mi.UInt32(piece.ia), mi.UInt32(piece.ib)
+    for q in range(NQ):
+        full = True if q <= _C1 else piece.long_piece
+        ca, cb = coef[q], coef[5 + q]
+        if ca is None and cb is None:
+            continue
+        va = gather(ua, q, full)
+        if cb is None:
+            total = dr.fma(va, T64(ca), total)
+            continue
+        vb = dr.select(piece.same, va, gather(ub, q, full & ~piece.same))   # one cell: once
+        if ca is not None:
+            total = dr.fma(va, T64(ca), total)
+        total = dr.fma(vb, T64(cb), total)
+    if periodic:
+        n = mi.UInt32(f.N)
+        for slot, q, mask in ((10, _C1, piece.need_t | piece.need_su), (11, _C2, piece.need_su),
+                              (12, _C3, piece.need_su)):
+            if coef[slot] is not None:
+                total = dr.fma(gather(n, q, mask), T64(coef[slot]), total)
+    return total
 
 
 def _sel(mask, a, b):

@@ -49,6 +49,8 @@ correction (the covariance ``σ²I + ΔC`` as ``σ·C^{-1/2}`` applied to ``(a, 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
@@ -76,17 +78,71 @@ def _sym_inv_sqrt(a, b, c):
     return rc * inv, -rb * inv, ra * inv
 
 
-def pixel_filter(mip, st, d0, d1, g, h, stddev: float, radius: float, rfilter, active):
+@dataclass(frozen=True)
+class FilmKernel:
+    """A film filter as :func:`pixel_filter` reads it (``FilterPixels`` has the same fields):
+    its standard deviation and radius in pixels, and the filter itself (its ``eval``)."""
+    stddev: float
+    radius: float
+    rfilter: object
+
+
+@dataclass
+class _Lattice:
+    """One lane's lattice (see the module docstring): ``X``, ``Y`` the centre in lattice units;
+    ``l00…l11`` the footprint Jacobian in lattice units; ``sx, sy, ox, oy`` the map st → lattice;
+    ``fine`` (below level 0) and ``view`` (the level read otherwise); ``ma, mb, mc`` the
+    second-moment correction ``σ·C^{-1/2}``; the row bounds (``t0``, ``t1``, ``shear``,
+    ``width2``, ``rl``, ``bc``); ``run`` (lanes summed) and ``beyond`` (wider than the image)."""
+    X: object
+    Y: object
+    l00: object
+    l01: object
+    l10: object
+    l11: object
+    sx: object
+    sy: object
+    ox: object
+    oy: object
+    fine: object
+    view: object
+    ma: object
+    mb: object
+    mc: object
+    t0: object
+    t1: object
+    shear: object
+    width2: object
+    rl: object
+    bc: object
+    run: object
+    beyond: object
+
+
+def pixel_filter(mip, st, d0, d1, g, h, kernel, active):
     """``T_c`` above for each lane: ``st`` the centre's texture coordinates, ``d0``, ``d1``
     (Vector2f) the partials of st with respect to the film position (one pixel), ``g``, ``h``
-    the perspective terms, ``stddev``, ``radius`` the film filter's (pixels) and ``rfilter`` the
-    film's filter (its ``eval``). Float (1 channel) or Color3f (RGB)."""
+    the perspective terms, ``kernel`` the film's filter (a :class:`FilmKernel`, or the render's
+    ``FilterPixels``). Float (1 channel) or Color3f (RGB)."""
     active = mi.Bool(active)
+    lat = _lattice(mip, st, d0, d1, g, h, kernel, active)
+    acc, acc_w = _lattice_sum(mip, lat, g, h, kernel)
+    result = acc / dr.select(acc_w > 0, acc_w, 1)
+    summed = lat.run & (acc_w > 0)
+    fallback = mip.bilinear(0, st, active & ~summed & ~lat.beyond)
+    out = dr.select(summed, result, fallback)
+    if len(mip.sizes) > 1:
+        out = dr.select(lat.beyond, mip.coarsest(active & lat.beyond), out)
+    return out
+
+
+def _lattice(mip, st, d0, d1, g, h, kernel, active) -> _Lattice:
+    """The lattice, its level and the kernel's shape on it, per lane."""
     W, H = float(mip.width), float(mip.height)
-    sigma = float(stddev)
-    R = float(radius) / sigma
+    sigma = float(kernel.stddev)
+    R = float(kernel.radius) / sigma
     last = len(mip.sizes) - 1
-    # level-0 texel Jacobian (columns: d/da, d/db) and the kernel's covariance there
+    # ---- the lattice: spacing from the kernel's covariance in level-0 texels -----------------
     j00, j01 = d0.x * W, d1.x * W
     j10, j11 = d0.y * H, d1.y * H
     ca = sigma * sigma * (j00 * j00 + j01 * j01)
@@ -104,8 +160,7 @@ def pixel_filter(mip, st, d0, d1, g, h, stddev: float, radius: float, rfilter, a
     lat = dr.clip(lat, MIN_LATTICE, last)
     fine = lat < 0
     spacing = dr.exp2(lat)                                  # level-0 texels per lattice unit
-    level = mi.UInt32(dr.maximum(lat, 0))
-    view = mip.view(level) if last > 0 else mip.view(0)
+    view = mip.view(mi.UInt32(dr.maximum(lat, 0))) if last > 0 else mip.view(0)
     lw, lh = view.size
     # lattice coordinates: X = st·scale - offset; lattice points at integers
     sx = dr.select(fine, W / spacing, lw)
@@ -117,11 +172,29 @@ def pixel_filter(mip, st, d0, d1, g, h, stddev: float, radius: float, rfilter, a
     # footprint Jacobian in lattice units
     l00, l01 = d0.x * sx, d1.x * sx
     l10, l11 = d0.y * sy, d1.y * sy
-    detj = l00 * l11 - l01 * l10
-    # second-moment correction (lattice units²), applied in the film plane: C = σ²I + δ·J⁻¹J⁻ᵀ
-    four = dr.exp2(-2 * lat)
-    delta = dr.select(lat <= 0, 1.0 / 6.0, (3 * four - 1) * (1.0 / 12.0))
-    inv_det = dr.rcp(detj)
+    # ---- second-moment correction (lattice units²), in the film plane: σ²I + δ·J⁻¹J⁻ᵀ ----------
+    delta = dr.select(lat <= 0, 1.0 / 6.0, (3 * dr.exp2(-2 * lat) - 1) * (1.0 / 12.0))
+    ma, mb, mc = _corrected_shape(l00, l01, l10, l11, sigma, delta)
+    # ---- loop bounds: the kernel's ellipse in lattice units, widened for the perspective -----
+    ba = sigma * sigma * (l00 * l00 + l01 * l01) + dr.maximum(delta, 0)
+    bb = sigma * sigma * (l00 * l10 + l01 * l11)
+    bc = sigma * sigma * (l10 * l10 + l11 * l11) + dr.maximum(delta, 0)
+    # a film offset within the radius maps at most 1/(1 - radius·(|g| + |h|)) times as far
+    rl = R / dr.maximum(1 - float(kernel.radius) * (dr.abs(g) + dr.abs(h)), 0.25) + 0.01
+    det_b = ba * bc - bb * bb
+    ey = dr.minimum(rl * dr.safe_sqrt(bc), MAX_EXTENT)
+    beyond = ok & (lat >= last) & (sig_min * dr.exp2(-lat) > 4)      # wider than the image
+    run = ok & ~beyond & (det_b > 0) & dr.isfinite(ey)
+    return _Lattice(X, Y, l00, l01, l10, l11, sx, sy, ox, oy, fine, view, ma, mb, mc,
+                    dr.ceil(Y - ey), dr.floor(Y + ey), dr.select(run, bb / bc, 0.0),
+                    dr.select(run, det_b / bc, 0.0), rl, bc, run, beyond)
+
+
+def _corrected_shape(l00, l01, l10, l11, sigma, delta):
+    """``σ·C^{-1/2}`` (as ``ma, mb, mc`` of a symmetric matrix) for the film-plane covariance
+    ``C = σ²I + δ·J⁻¹J⁻ᵀ`` (J the footprint Jacobian in lattice units); the identity where it
+    is not finite."""
+    inv_det = dr.rcp(l00 * l11 - l01 * l10)
     i00, i01 = l11 * inv_det, -l01 * inv_det
     i10, i11 = -l10 * inv_det, l00 * inv_det
     pa = sigma * sigma + delta * (i00 * i00 + i01 * i01)
@@ -129,62 +202,51 @@ def pixel_filter(mip, st, d0, d1, g, h, stddev: float, radius: float, rfilter, a
     pc = sigma * sigma + delta * (i10 * i10 + i11 * i11)
     ma, mb, mc = _sym_inv_sqrt(pa, pb, pc)
     ma, mb, mc = ma * sigma, mb * sigma, mc * sigma
-    good_m = dr.isfinite(ma) & dr.isfinite(mb) & dr.isfinite(mc) & (pa * pc - pb * pb > 0)
-    ma, mb, mc = dr.select(good_m, ma, 1.0), dr.select(good_m, mb, 0.0), dr.select(good_m, mc, 1.0)
-    # loop bounds: the kernel's ellipse in lattice units, widened for the perspective warp
-    ba = sigma * sigma * (l00 * l00 + l01 * l01) + dr.maximum(delta, 0)
-    bb = sigma * sigma * (l00 * l10 + l01 * l11)
-    bc = sigma * sigma * (l10 * l10 + l11 * l11) + dr.maximum(delta, 0)
-    # a film offset within the radius maps at most 1/(1 - radius·(|g| + |h|)) times as far
-    rl = R / dr.maximum(1 - float(radius) * (dr.abs(g) + dr.abs(h)), 0.25) + 0.01
-    det_b = ba * bc - bb * bb
-    ey = dr.minimum(rl * dr.safe_sqrt(bc), MAX_EXTENT)
-    beyond = ok & (lat >= last) & (sig_min * dr.exp2(-lat) > 4)      # wider than the image
-    run = ok & ~beyond & (det_b > 0) & dr.isfinite(ey)
-    shear = dr.select(run, bb / bc, 0.0)
-    width2 = dr.select(run, det_b / bc, 0.0)
-    t0 = dr.ceil(Y - ey)
-    t1 = dr.floor(Y + ey)
+    good = dr.isfinite(ma) & dr.isfinite(mb) & dr.isfinite(mc) & (pa * pc - pb * pb > 0)
+    return dr.select(good, ma, 1.0), dr.select(good, mb, 0.0), dr.select(good, mc, 1.0)
+
+
+def _lattice_sum(mip, lat: _Lattice, g, h, kernel):
+    """(Σ w·v, Σ w) over the lattice points inside each lane's kernel, row by row."""
+    radius, rfilter = float(kernel.radius), kernel.rfilter
     T = mip.value_type()
 
     def span(t):
-        dy = t - Y
-        rem = rl * rl - dy * dy / bc
-        hw = dr.minimum(dr.safe_sqrt(rem * width2), MAX_EXTENT)
-        mid = X + shear * dy
+        dy = t - lat.Y
+        rem = lat.rl * lat.rl - dy * dy / lat.bc
+        hw = dr.minimum(dr.safe_sqrt(rem * lat.width2), MAX_EXTENT)
+        mid = lat.X + lat.shear * dy
         lo = dr.ceil(mid - hw)
         hi = dr.select(rem >= 0, dr.floor(mid + hw), lo - 1)
         return lo, hi
 
-    i0, i1 = span(t0)
-
-    def cond(t, i, i_end, acc, acc_w):
-        return run & (t <= t1)
-
-    def body(t, i, i_end, acc, acc_w):
-        inside = run & (i <= i_end)
-        dx, dy = i - X, t - Y
-        # film offset (a, b) whose projective image is this lattice point
-        m00, m01 = l00 - g * dx, l01 - h * dx
-        m10, m11 = l10 - g * dy, l11 - h * dy
-        dm = m00 * m11 - m01 * m10
-        inv = dr.rcp(dm)
+    def weight(i, t, inside):
+        """The filter at the film offset (a, b) whose projective image is lattice point (i, t),
+        times the Jacobian ``(1 + a·g + b·h)³``."""
+        dx, dy = i - lat.X, t - lat.Y
+        m00, m01 = lat.l00 - g * dx, lat.l01 - h * dx
+        m10, m11 = lat.l10 - g * dy, lat.l11 - h * dy
+        inv = dr.rcp(m00 * m11 - m01 * m10)
         a = (dx * m11 - m01 * dy) * inv
         b = (m00 * dy - m10 * dx) * inv
         den = 1 + a * g + b * h
-        aa = ma * a + mb * b
-        bb_ = mb * a + mc * b
-        use = inside & (den > 0) & (dr.abs(aa) < radius) & (dr.abs(bb_) < radius) \
-            & dr.isfinite(aa) & dr.isfinite(bb_)
-        wgt = rfilter.eval(dr.select(use, aa, 0), use) * rfilter.eval(dr.select(use, bb_, 0), use)
-        wgt = dr.select(use, dr.maximum(wgt, 0) * den * den * den, 0)
-        px = (i + ox) / sx
-        py = (t + oy) / sy
-        v_fine = mip.bilinear(0, mi.Point2f(px, py), use & fine)
-        v_level = mip.fetch(view, i, t, use & ~fine)
-        v = dr.select(fine, v_fine, v_level)
-        acc = dr.fma(v, wgt, acc)
-        acc_w = acc_w + wgt
+        aa = lat.ma * a + lat.mb * b
+        bb = lat.mb * a + lat.mc * b
+        use = inside & (den > 0) & (dr.abs(aa) < radius) & (dr.abs(bb) < radius) \
+            & dr.isfinite(aa) & dr.isfinite(bb)
+        w = rfilter.eval(dr.select(use, aa, 0), use) * rfilter.eval(dr.select(use, bb, 0), use)
+        return dr.select(use, dr.maximum(w, 0) * den * den * den, 0), use
+
+    def cond(t, i, i_end, acc, acc_w):
+        return lat.run & (t <= lat.t1)
+
+    def body(t, i, i_end, acc, acc_w):
+        w, use = weight(i, t, lat.run & (i <= i_end))
+        v_fine = mip.bilinear(0, mi.Point2f((i + lat.ox) / lat.sx, (t + lat.oy) / lat.sy),
+                              use & lat.fine)
+        v_level = mip.fetch(lat.view, i, t, use & ~lat.fine)
+        acc = dr.fma(dr.select(lat.fine, v_fine, v_level), w, acc)
+        acc_w = acc_w + w
         next_row = i + 1 > i_end
         t = dr.select(next_row, t + 1, t)
         lo, hi = span(t)
@@ -192,12 +254,8 @@ def pixel_filter(mip, st, d0, d1, g, h, stddev: float, radius: float, rfilter, a
         i_end = dr.select(next_row, hi, i_end)
         return t, i, i_end, acc, acc_w
 
-    state = (mi.Float(t0), mi.Float(i0), mi.Float(i1), dr.zeros(T), mi.Float(0))
+    i0, i1 = span(lat.t0)
+    state = (mi.Float(lat.t0), mi.Float(i0), mi.Float(i1), dr.zeros(T), mi.Float(0))
     *_, acc, acc_w = dr.while_loop(state, cond, body, max_iterations=-1,
                                    label='pbrt_gaussian_pixel')
-    result = acc / dr.select(acc_w > 0, acc_w, 1)
-    fallback = mip.bilinear(0, st, active & ~(run & (acc_w > 0)) & ~beyond)
-    out = dr.select(run & (acc_w > 0), result, fallback)
-    if last > 0:
-        out = dr.select(beyond, mip.coarsest(active & beyond), out)
-    return out
+    return acc, acc_w

@@ -46,19 +46,32 @@ def spp_scale(spp: int, mode) -> float:
     return float(mode)
 
 
+def film_ray(sensor, position, time=None, active=True):
+    """(ray differential, weight) of ``sensor`` through film ``position`` (crop pixel
+    coordinates, Point2f) at the aperture's centre; ``time`` defaults to the shutter opening."""
+    crop = mi.ScalarVector2f(sensor.film().crop_size())
+    time = mi.Float(sensor.shutter_open()) if time is None else time
+    return sensor.sample_ray_differential(time, mi.Float(0.5), mi.Point2f(position / crop),
+                                          mi.Point2f(0.5), active)
+
+
+def plane_hit(o, d, p, n):
+    """Where the line ``o + t·d`` meets the plane through ``p`` with normal ``n`` (non-finite
+    where they are parallel)."""
+    return o + d * (dr.dot(n, p - o) / dr.dot(n, d))
+
+
 def tangent_plane_offsets(p, n, o_x, d_x, o_y, d_y, active):
     """Offsets ``dp/dx, dp/dy`` of the offset rays' hits on the plane through p with normal n.
 
     Returns (dpdx, dpdy, ok); ok is False where an offset ray is parallel to the plane or the
     result is not finite (pbrt-v4 then falls back to the camera approximation)."""
-    n = mi.Vector3f(n)
-    d = dr.dot(n, mi.Vector3f(p))
-    den_x, den_y = dr.dot(n, d_x), dr.dot(n, d_y)
-    tx = (d - dr.dot(n, mi.Vector3f(o_x))) / den_x
-    ty = (d - dr.dot(n, mi.Vector3f(o_y))) / den_y
-    dpdx = mi.Vector3f(o_x + tx * d_x - p)
-    dpdy = mi.Vector3f(o_y + ty * d_y - p)
-    ok = active & (den_x != 0) & (den_y != 0) & dr.all(dr.isfinite(dpdx)) & dr.all(dr.isfinite(dpdy))
+    n, p = mi.Vector3f(n), mi.Point3f(p)
+    d_x, d_y = mi.Vector3f(d_x), mi.Vector3f(d_y)
+    dpdx = mi.Vector3f(plane_hit(mi.Point3f(o_x), d_x, p, n) - p)
+    dpdy = mi.Vector3f(plane_hit(mi.Point3f(o_y), d_y, p, n) - p)
+    ok = active & (dr.dot(n, d_x) != 0) & (dr.dot(n, d_y) != 0) & \
+        dr.all(dr.isfinite(dpdx)) & dr.all(dr.isfinite(dpdy))
     return dr.select(ok, dpdx, 0.0), dr.select(ok, dpdy, 0.0), ok
 
 

@@ -308,7 +308,7 @@ class Plugin(PbrtTexture):
         return TextureEvalContext.from_si(si)
 
     def _value(self, si, active):
-        pixels = pixel.current_pixels() if self.filter_name == 'box' else None
+        pixels = pixel.published_pixels() if self.filter_name == 'box' else None
         if pixels is not None:
             v = self._film_filtered(si, active, pixels) * self.scale
         else:
@@ -330,8 +330,7 @@ class Plugin(PbrtTexture):
         tables = self._sync_box_tables()
         kernel = gauss.pixel_filter(MIPMap(pyr, self.wrap), tc.st,
                                     mi.Vector2f(tc.dsdx, tc.dtdx), mi.Vector2f(tc.dsdy, tc.dtdy),
-                                    g, h, pixels.stddev, pixels.radius, pixels.rfilter,
-                                    active & ok)
+                                    g, h, pixels, active & ok)
         tc_sample = self.mapping.map(TextureEvalContext.from_si(si))
         sample = self.filter(pyr, tc_sample, active & ~ok, tables)
         return dr.select(ok, kernel, sample)

@@ -14,6 +14,9 @@ import pytest
 from conftest import A, wavefront_mode
 from test_pixel_footprint import RES, box_texture, interior_pixels, scene_dict
 
+from mitsuba_pbrt_tex.film_view import FilterPixels
+from mitsuba_pbrt_tex.render_scope import RenderScope, published
+
 T = mi.ScalarTransform4f
 
 
@@ -34,7 +37,6 @@ def test_film_positions_decode_to_their_pixel(n, rng):
     """Every film position of sample s of pixel c decodes to c, also moved by up to 0.2 of the
     decoding margin (half a cell of the a × b grid in ψ: 1/(2a) of ψ, at least 1/(2a·max G/∫G)
     pixel), in any direction."""
-    from mitsuba_pbrt_tex.pixel import FilterPixels
     pixels = FilterPixels(gaussian_film(), seed=7)
     pixels.draw(n)
     count = 20000
@@ -56,7 +58,6 @@ def test_film_offsets_follow_the_filter():
     independent samples are 0.044 and 0.031; the 16 of a render are stratified, which only
     lowers it); the lattice CDF and its inverse agree; within one render the 16 samples' cells
     are distinct."""
-    from mitsuba_pbrt_tex.pixel import FilterPixels
     film = gaussian_film()
     grid = np.linspace(-2, 2, 40001)
     cdf = np.cumsum(filter_1d(grid))
@@ -88,7 +89,7 @@ def test_camera_hits_decode_to_the_pixel_their_ray_was_drawn_for(rng):
     from mitsuba_pbrt_tex import pixel
     scene = mi.load_dict(scene_dict(box_texture(rng), rfilter='gaussian'))
     sensor = scene.sensors()[0]
-    pixels = pixel.FilterPixels(sensor.film(), seed=5)
+    pixels = FilterPixels(sensor.film(), seed=5)
     pixels.draw(16)
     w, h = RES
     ys, xs = np.mgrid[0:h, 0:w]
@@ -113,7 +114,7 @@ def test_box_pixel_context_is_for_box_films_only(rng):
     from mitsuba_pbrt_tex import pixel
     scene = mi.load_dict(scene_dict(box_texture(rng), rfilter='gaussian'))
     sensor = scene.sensors()[0]
-    pixels = pixel.FilterPixels(sensor.film(), seed=5)
+    pixels = FilterPixels(sensor.film(), seed=5)
     pixels.draw(4)
     w, h = RES
     pos = np.stack([rng.uniform(0.3, 0.7, 64), rng.uniform(0.6, 0.9, 64)], 1)
@@ -121,9 +122,9 @@ def test_box_pixel_context_is_for_box_films_only(rng):
                                             mi.Point2f(0.5), True)
     si = scene.ray_intersect(mi.Ray3f(ray))
     assert A(si.is_valid()).mean() > 0.9
-    with pixel.published(sensor):
+    with published(RenderScope(sensor)):
         box = pixel.context(si)
-    with pixel.published(sensor, pixels):
+    with published(RenderScope(sensor, pixels)):
         gaussian = pixel.context(si)
     assert np.abs(A(box.dudx)).max() > 0
     assert np.all(A(gaussian.dudx) == 0) and np.all(A(gaussian.dvdy) == 0)
@@ -192,7 +193,7 @@ def test_kernel_against_numpy_integration(case, rng):
     out = A(gauss.pixel_filter(
         mip, mi.Point2f(st[:, 0], st[:, 1]), mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d0s]),
         mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d1s]), mi.Float(np.full(n, g)),
-        mi.Float(np.full(n, h)), 0.5, 2.0, rfilter, True))
+        mi.Float(np.full(n, h)), gauss.FilmKernel(0.5, 2.0, rfilter), True))
     ref = np.array([reference_kernel(img.astype(np.float64), st[k], d0s, d1s, g, h)
                     for k in range(n)])
     err = np.abs(out - ref).max()

@@ -645,14 +645,14 @@ def _readers(scene):
 
 def test_camera_approximation_skipped_on_shapes_without_a_reader_changes_no_pixel():
     """After a bounce, the camera approximation is computed only on shapes with a texture
-    that reads it (``_reader_shapes``): the walls' plain reflectance and the ball read nothing.
+    that reads it (``scene_needs.reader_shapes``): the walls' plain reflectance and the ball read nothing.
     Reference: the same room whose walls' reflectance and ball's roughness are
     ``pbrt_checkerboard``s of two equal values — the same BSDFs, but textures that read
     differentials on every shape, so no shape is skipped. The
     renders (same seed) must agree to float32 rounding (as the ``prb`` comparison above); a
     floor left out of the mask (its bounce hits then read MIP level 0) changes pixels by far
     more. A mask that is None here would mean nothing was skipped: checked too."""
-    from mitsuba_pbrt_tex.plugins.pbrt_path import _reader_shapes
+    from mitsuba_pbrt_tex.scene_needs import reader_shapes as _reader_shapes
     gated = _gating_scene(0.5, 0.3)
     reference = _gating_scene({'type': 'pbrt_checkerboard', 'tex1': 0.5, 'tex2': 0.5},
                               {'type': 'pbrt_checkerboard', 'tex1': 0.3, 'tex2': 0.3})
@@ -660,10 +660,9 @@ def test_camera_approximation_skipped_on_shapes_without_a_reader_changes_no_pixe
     assert mask is not None and _reader_shapes(reference, _readers(reference)) is None
     # ... and the mask is what the path tracer is given (the images cannot show it)
     integrator = gated.integrator()
-    integrator.scene_needs(gated)
     sensor = gated.sensors()[0]
-    prep = integrator.prepare_trace(gated, sensor.sampler(), sensor)
-    np.testing.assert_array_equal(np.array(prep[4]), np.array(mask))
+    inputs = integrator.trace_inputs(gated, sensor.sampler(), sensor)
+    np.testing.assert_array_equal(np.array(inputs.needs.reader_shapes), np.array(mask))
     a = np.array(mi.render(gated, spp=16, seed=4))
     b = np.array(mi.render(reference, spp=16, seed=4))
     assert a.mean() > 0.05
@@ -676,7 +675,7 @@ def test_reader_shapes_are_those_whose_bsdf_or_emitter_holds_a_reader():
     radiance marks its shape; plain BSDFs and emitters, Mitsuba's own textures and a
     ``pbrt_constant`` (which reads no differentials) do not. None when every shape is marked
     or no texture reads differentials."""
-    from mitsuba_pbrt_tex.plugins.pbrt_path import _reader_shapes
+    from mitsuba_pbrt_tex.scene_needs import reader_shapes as _reader_shapes
     checker = {'type': 'pbrt_checkerboard'}
     shapes = {
         'direct': {'type': 'diffuse', 'reflectance': checker},

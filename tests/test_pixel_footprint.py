@@ -403,7 +403,7 @@ def probe_hits(scene):
 
 @pytest.mark.parametrize('crop', [None, ((5, 3), (14, 10))])
 def test_silhouette_pixels_match_ray_casts_through_centre_and_corners(crop):
-    """The pixels that get silhouette paths (``silhouette_pixels``, called with every pixel of
+    """The pixels that get silhouette paths (``silhouettes.edge_pixels``, with every pixel of
     the film) against Mitsuba's rays through each pixel's centre and four corners compared in
     numpy: a pixel crosses a silhouette where a corner ray and the centre ray disagree about
     hitting, about the shape, or about the normal (cos < 0.9) — the rule of the parameter
@@ -426,10 +426,9 @@ def test_silhouette_pixels_match_ray_casts_through_centre_and_corners(crop):
         same = (valid.all(0) & (shape == shape[0]).all(0))
         assert (want & same).sum() >= 2                    # the normal alone disagrees
     assert 20 < want.sum() < want.size / 2
-    integrator = scene.integrator()
+    from mitsuba_pbrt_tex.silhouettes import edge_pixels
     xs, ys, _, _ = film_window(scene)
-    integrator._pixel_pos = mi.Vector2f(xs, ys)
-    got = A(integrator.silhouette_pixels(scene, scene.sensors()[0], mi.Bool(True)))
+    got = A(edge_pixels(scene, scene.sensors()[0], mi.Vector2f(xs, ys), mi.Bool(True)))
     np.testing.assert_array_equal(got, want)
 
 

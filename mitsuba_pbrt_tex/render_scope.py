@@ -1,0 +1,76 @@
+"""One ``pbrt_path`` render as one value: the hand-off between the integrator and the textures.
+
+A render of ``pbrt_path`` needs a few things that live exactly as long as the render: the sensor
+(for the camera approximation and for pixel footprints), with ``footprint="pixel"`` and a
+Gaussian film the render's shared sample offsets (:class:`~mitsuba_pbrt_tex.film_view.
+FilterPixels`), the film positions of the camera samples, and — after the first hits — the
+position each sample counts at. :class:`RenderScope` holds them; nothing else of a render is
+kept.
+
+Who makes and reads it:
+
+* ``pbrt_path.render``/``render_forward``/``render_backward`` create it where the render starts
+  and hand Mitsuba's ``render`` methods the sensor view that carries it
+  (``pbrt_path``'s ``begin``); ``sample_rays`` fills in the camera samples'
+  positions. Mitsuba then calls ``sample()`` without the sensor, so ``sample_rays`` leaves the
+  scope in the integrator's one hand-over attribute, which ``sample()`` reads and passes
+  explicitly to ``trace``;
+* ``trace`` returns the pixel each camera hit decoded to (Gaussian film), and ``sample()``
+  records it as :attr:`RenderScope.counted`; the film view's image blocks splat each sample
+  there (:class:`~mitsuba_pbrt_tex.film_view.CountingBlock`) — Mitsuba's own positions are never
+  written to;
+* textures read the scope through :func:`published`: a texture sees only the
+  ``SurfaceInteraction3f`` its BSDF passes on, and a symbolic BSDF call admits no per-lane input
+  besides its arguments, so while ``sample()`` traces (or, in wavefront mode, runs) its path loop
+  the scope is published on the thread, and opting-in textures (:mod:`mitsuba_pbrt_tex.pixel`)
+  read the sensor and the offsets from it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+_STATE = threading.local()
+
+
+@dataclass
+class RenderScope:
+    """One render (see the module docstring)."""
+
+    #: the scene's sensor (never the film view Mitsuba's ``render`` is given)
+    sensor: object
+    #: ``footprint="pixel"`` with a Gaussian film: the render's FilterPixels; else None
+    pixels: object = None
+    #: the camera samples' film positions (``sample_rays``): the sample's pixel (box film)
+    #: or the pixel centre it was drawn for (Gaussian film)
+    positions: object = None
+    #: Gaussian film: where each sample counts — the pixel its first hit decoded to
+    counted: object = None
+
+    def count_at_decoded(self, pixel, ok):
+        """Record ``pixel`` (crop coordinates; ``ok`` per lane) as where each sample counts —
+        the pixel its textures centred on; lanes not ``ok`` count where they were drawn."""
+        self.counted = mi.Vector2f(dr.select(ok, mi.Vector2f(pixel) + self.pixels.offset + 0.5,
+                                             mi.Vector2f(self.positions)))
+
+
+@contextlib.contextmanager
+def published(scope: RenderScope | None):
+    """Within this block (on this thread), opting-in textures centre camera hits on the pixels
+    of ``scope`` (None: nothing published, every texture keeps the sample's footprint)."""
+    previous = getattr(_STATE, 'scope', None)
+    _STATE.scope = scope
+    try:
+        yield
+    finally:
+        _STATE.scope = previous
+
+
+def current() -> RenderScope | None:
+    """The published scope, or None (no ``pbrt_path`` render with pixel footprints)."""
+    return getattr(_STATE, 'scope', None)

@@ -1,0 +1,81 @@
+"""Extra paths in the pixels that cross a silhouette (``pbrt_path`` ``silhouette_spp``).
+
+With pixel footprints (``footprint="pixel"``, box film) every sample of a fully covered pixel
+sees the pixel's texture average, so a 1-spp image is converged there; what is left is where a
+pixel crosses a silhouette or the horizon, and the texture's pixel average no longer describes
+what the pixel sees. Those pixels are found by five camera rays per lane — the pixel's centre and
+its four corners — that disagree about the surface they hit (:func:`edge_pixels`); their lanes,
+compacted, trace ``silhouette_spp`` more paths through random points of their pixel
+(:func:`extra_paths`), which the integrator averages with the sample's own.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .raydiff import film_ray
+
+#: the pixel's centre, then its corners (offsets from the pixel's corner, in pixels)
+PROBES = ((0.5, 0.5), (0, 0), (1, 0), (0, 1), (1, 1))
+#: normals more than ~25° apart count as different surfaces
+SAME_NORMAL = 0.9
+
+
+def _ray(sensor, pixel_pos, offset, active):
+    """The camera ray through full-film position ``pixel_pos + offset``."""
+    origin = mi.ScalarVector2f(sensor.film().crop_offset())
+    ray, _ = film_ray(sensor, pixel_pos + offset - origin, None, active)
+    return ray
+
+
+def edge_pixels(scene, sensor, pixel_pos, active):
+    """Lanes whose pixel (full-film coordinates of its corner, ``pixel_pos``) has centre and
+    corner rays that disagree about the surface they hit: a miss, another shape, or normals
+    more than ~25° apart."""
+    pixel_pos = mi.Vector2f(pixel_pos)
+    hits = []
+    for offset in PROBES:
+        ray = _ray(sensor, pixel_pos, mi.Vector2f(*offset), active)
+        si = scene.ray_intersect(mi.Ray3f(ray), mi.RayFlags.Minimal, True, active)
+        hits.append((si.is_valid(), dr.reinterpret_array(mi.UInt32, si.shape),
+                     mi.Vector3f(si.n)))
+    valid0, shape0, n0 = hits[0]
+    edge = mi.Bool(False)
+    for valid, shape, n in hits[1:]:
+        edge |= (valid != valid0) | (valid & ((shape != shape0) | (dr.dot(n, n0) < SAME_NORMAL)))
+    return active & edge
+
+
+def extra_paths(trace, sensor, sampler, pixel_pos, edge, count: int):
+    """Sum of ``count`` more paths in each ``edge`` lane's pixel (0 elsewhere); ``trace(sampler,
+    ray, active)`` gives a path's radiance. The edge lanes are compacted first — a few percent
+    of the lanes, which a masked loop over all lanes would carry along — and draw from a sampler
+    of their own, seeded from this one. (Compaction needs this to run outside a symbolic scope:
+    Mitsuba's ``render`` methods call ``sample()`` there, in symbolic and wavefront mode and
+    under ``dr.freeze``.)"""
+    index = dr.compress(edge)
+    n = dr.width(index)
+    total = dr.zeros(mi.Spectrum, dr.width(edge))
+    if n == 0:
+        return total
+    seed = dr.gather(mi.UInt32, mi.UInt32(sampler.next_1d() * 4294967040.0), 0)
+    sub = sampler.fork()
+    sub.seed(seed, n)
+    acc = _paths(trace, sensor, sub, dr.gather(mi.Vector2f, mi.Vector2f(pixel_pos), index),
+                 dr.full(mi.Bool, True, n), count)
+    dr.scatter(total, acc, index)
+    return total
+
+
+@dr.syntax
+def _paths(trace, sensor, sampler, pixel_pos, edge, count):
+    """Sum of ``count`` paths through random points of each lane's pixel ``pixel_pos``."""
+    k = mi.UInt32(0)
+    acc = mi.Spectrum(0)
+    while dr.hint(edge & (k < count), label='pbrt_path (silhouettes)',
+                  exclude=[sensor, pixel_pos, edge]):              # read only
+        ray = _ray(sensor, pixel_pos, sampler.next_2d(), edge)
+        acc += trace(sampler, ray, edge)
+        k += 1
+    return acc
