@@ -15,6 +15,7 @@ variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single bas
 
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 
 from . import variants
@@ -155,6 +156,15 @@ class PbrtTexture:
 
     def nested_eval(self, name: str, si, kind: Kind, active):
         return kind.nested(self._nested[name], si, active)
+
+    def blend_nested(self, w1, w2, si, kind: Kind, active):
+        """``w1·tex1 + w2·tex2`` of the nested textures ``tex1``, ``tex2``, each evaluated only
+        where its weight is non-zero, as pbrt-v4's ``MixTexture``: the lookup is saved, and a
+        texture that is infinite or NaN where its weight is 0 leaves the blend finite."""
+        use1, use2 = w1 != 0, w2 != 0
+        t1 = self.nested_eval('tex1', si, kind, active & use1)
+        t2 = self.nested_eval('tex2', si, kind, active & use2)
+        return dr.select(use1, w1 * t1, 0) + dr.select(use2, w2 * t2, 0)
 
     # ------------------------------------------------------------------ Mitsuba interface
     def mean(self):

@@ -10,7 +10,6 @@
 ``tex2`` not where amount = 0.
 """
 
-import drjit as dr
 import mitsuba as mi
 
 from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, nested_mean
@@ -26,10 +25,7 @@ class Plugin(PbrtTexture):
 
     def evaluate(self, si, kind, active):
         amount = self.nested_eval('amount', si, FLOAT, active)
-        use1, use2 = amount != 1, amount != 0
-        t1 = self.nested_eval('tex1', si, kind, active & use1)
-        t2 = self.nested_eval('tex2', si, kind, active & use2)
-        return dr.select(use1, (1 - amount) * t1, 0) + dr.select(use2, amount * t2, 0)
+        return self.blend_nested(1 - amount, amount, si, kind, active)
 
     def mean(self):
         a = nested_mean(self._nested['amount'])
