@@ -91,7 +91,7 @@ class EWAFilter:
             raise ValueError('EWA needs every level of the MIP pyramid')
         # Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)
         # when levels 0 … cached_from-1 are too large to stay in cache (lookups there gain).
-        level0_bytes = 4 * mip.width * mip.height * mip.pyr.stride
+        level0_bytes = mip.level_nbytes(0)
         cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
         if not self.reorder or cached_from <= 0:
             return self.filter(mip, st, dst0, dst1, active)
