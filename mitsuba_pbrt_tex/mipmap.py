@@ -352,10 +352,8 @@ class MIPMap:
         """``fn(mask)`` where ``mask`` holds and 0 elsewhere, as a symbolic conditional: a
         packet of lanes none of which needs it skips it (a branch), where a masked computation
         would run it anyway — e.g. the second level of a trilinear lookup under magnification
-        (30% faster). Also while the texels carry gradients: forward and backward mode through
-        it inside ``pbrt_path``'s loop are tested against finite differences (an earlier Dr.Jit
-        failed in forward mode there, and lookups being differentiated took a masked form; a
-        mutation run showed the tests no longer tell the two apart)."""
+        (30% faster). Also used while the texels carry gradients: forward and backward mode
+        through it inside ``pbrt_path``'s loop are tested against finite differences."""
         return dr.if_stmt(args=(mask,), cond=mask, true_fn=fn,
                           false_fn=lambda m: dr.zeros(self.value_type()), label='pbrt_level')
 

@@ -41,7 +41,7 @@ No field of ``si`` is changed or reused, so it works the same inside Mitsuba's s
 inside the BSDF's symbolic call and in wavefront mode. Lanes where it cannot hold — not a camera
 hit, no publication (Mitsuba's own integrators, a direct ``tex.eval(si)``), a plane missed by
 the centre ray, ``|g|`` or ``|h|`` ≥ 1 (the pixel sees the plane's horizon), non-finite values —
-use the sample-centred context, as before.
+use the sample-centred context.
 
 Gaussian film filter (Mitsuba's default). A Gaussian film gives a pixel the filter-weighted
 average of the samples within its radius (2 pixels), and Mitsuba's ``ImageBlock`` splats every
@@ -65,9 +65,9 @@ changes how samples are *placed*, not what reaches a texture (still only ``si``)
   ``round(x - 1/2 - v_s)`` the pixel. The texture decodes it from the projected hit, and
   ``pbrt_path`` decodes it the same way (same function, same inputs) at the first hit and
   counts the sample there, so the pixel a texture centred on and the pixel the sample counts in
-  are always the same. (Encoding the pixel in the positions' sub-pixel bits instead — tried
-  first — needs margins of ~1e-2 pixel on such scenes: a quarter of the samples decoded to a
-  neighbour, and a fifth of the pixels of a 1-spp image were left empty.) The price: at low
+  are always the same. (The pixel cannot be encoded in the positions' sub-pixel bits instead:
+  that needs margins of ~1e-2 pixel on such scenes, or a quarter of the samples decode to a
+  neighbour and a fifth of the pixels of a 1-spp image stay empty.) The price: at low
   spp every pixel samples the same offsets, so silhouettes alias rather than being noisy;
 * the texture filters the film filter's own kernel around the pixel centre
   (:func:`filter_context`, :func:`mitsuba_pbrt_tex.gauss.pixel_filter`): ``f(a)·f(b)`` over film
