@@ -268,7 +268,7 @@ def _finite64(x):
 def _single_cell(mip, level, st, e0, e1, active):
     """The exact average over a parallelogram inside one cell between four texel centres: the
     bilinear value at its centre plus the twist term ``f_xy·(e0x·e0y + e1x·e1y)/12``."""
-    texels, wx, wy, _ = mip._corners(level, st, active)
+    texels, wx, wy, _ = mip.corners(level, st, active)
     f00, f10, f01, f11 = texels
     centre = (f00 * wx[0] + f10 * wx[1]) * wy[0] + (f01 * wx[0] + f11 * wx[1]) * wy[1]
     twist = mi.Float((e0[0] * e0[1] + e1[0] * e1[1]) * (1.0 / 12.0))

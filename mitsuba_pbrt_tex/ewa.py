@@ -19,34 +19,24 @@ Exactly pbrt's filter:
 Vectorisation: each lane loops over *the texels of its own ellipse*, row by row — for every row
 the two roots of the quadratic give the column span — instead of pbrt's bounding box. Texels the
 bounding box adds are outside the ellipse and have weight 0, so the result is identical while a
-45° 8:1 footprint visits several times fewer texels. Two columns are processed per iteration
-(halving the per-iteration bookkeeping; measured 8% faster than one, while three or four were
-no faster). The wrapped row is computed once per row. The table weight ``LUT[i]`` is computed
-rather than gathered, as a degree-7 polynomial in ``i`` fitted to the table (relative error
-3.6e-7 in float32, against 1.4e-7 for the float32 table itself; 3× fewer instructions than
-``exp``, which made the whole filter 10–25% faster on this noisy machine). Texels with ``r²·128 ≥ 127`` get table
-entry 127, which is exactly 0, so the loop tests ``r² < 127/128``. The loop is a
+45° 8:1 footprint visits several times fewer texels. Each iteration takes two adjacent columns
+(:data:`COLUMNS_PER_STEP`, half the per-iteration bookkeeping), and the wrapped row is computed
+once per row. The table weight ``LUT[i]`` is computed rather than gathered, as a degree-7
+polynomial in ``i`` fitted to the table (relative error 3.6e-7 in float32, against 1.4e-7 for
+the float32 table itself; a third of the instructions of ``exp``). Texels with ``r²·128 ≥ 127``
+get table entry 127, which is exactly 0, so the loop tests ``r² < 127/128``. The loop is a
 ``dr.while_loop`` with the ``max_iterations=-1`` hint (a sum-style loop), so reverse-mode AD
 through it reaches the texels.
 
-Speed limits (measured on a 2-core AMD EPYC, ``bench lookups``): at random uv the filter is
-bound by memory latency — an 8:1 footprint with a 1.5-texel minor axis touches about 40 cache
-lines (levels 0 and 1), against about 2.5 for a bilinear lookup, and one loop iteration costs
-about one DRAM latency whatever else it does. Reading aligned 4-texel blocks as one packet per
-iteration, software-pipelining the reads one iteration ahead, and walking two bands of rows at
-once were each tried and measured no faster (more work per iteration, or the same number of
-lines in flight); a first loop that only touches the footprint's lines, so that the weighting
-loop finds them in cache, was ~10% faster at random uv but 30% slower at coherent uv. Storing
-the levels in tiles (4-texel-wide strips of 16–64 rows, or 16×16-texel blocks, so a footprint's
-lines lie close together in memory) was 17–25% faster at random uv but 6% slower at coherent uv
-(the extra index arithmetic), so rows stay plain; 2 MB pages were no faster (not a TLB limit).
-The limit is the memory holding the level, not the filter: ``bench lookups`` times the same
-ellipses at coarser levels (same texels and cache lines per lookup) — with levels 0 and 1 of a
-1024² texture (20 MB as RGBA float32) a lookup costs 3–4× what it costs on levels 1 and 2
-(5 MB, served from cache). So :meth:`EWAFilter.__call__` hands batches that can be reordered —
+Memory: at random uv the filter is bound by memory latency, not arithmetic — an 8:1 footprint
+with a 1.5-texel minor axis touches about 40 cache lines (levels 0 and 1), against about 2.5 for
+a bilinear lookup, and the same ellipses cost 3–4× less on levels small enough to stay in cache
+(``bench lookups``). So :meth:`EWAFilter.__call__` hands batches that can be reordered —
 evaluated arrays, outside a symbolic loop or call — to :mod:`~mitsuba_pbrt_tex.lookup_order`,
 which filters them sorted by texture tile when enough of their lookups read such large levels
-(measured: 2.5–3.5× faster at random uv, the same values).
+(the same values, 2.5–3.5× faster at random uv). The levels stay plain rows of texels: the other
+layouts and loop shapes measured, and why they lost, are in the design notes of
+``mitsuba_pbrt_tex/bench/report/lookups.md``.
 """
 
 from __future__ import annotations
@@ -91,7 +81,7 @@ class EWAFilter:
             raise ValueError('EWA needs every level of the MIP pyramid')
         # Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)
         # when levels 0 … cached_from-1 are too large to stay in cache (lookups there gain).
-        level0_bytes = 4 * mip.width * mip.height * mip.pyr.stride
+        level0_bytes = mip.level_nbytes(0)
         cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
         if not self.reorder or cached_from <= 0:
             return self.filter(mip, st, dst0, dst1, active)

@@ -15,8 +15,12 @@ reaches a texture (still only ``si``):
   offset, hence the pixel (:meth:`FilterPixels.decode`). The texture decodes it from the hit
   projected back to the film, and ``pbrt_path`` decodes it the same way (same function, same
   inputs) at the first hit and counts the sample there, so the pixel a texture centred on and
-  the pixel the sample counts in are always the same. The price: at low spp every pixel samples
-  the same offsets, so silhouettes alias rather than being noisy;
+  the pixel the sample counts in are always the same. A margin of half a stratum (≥ 1/64
+  pixel up to 1024 spp) absorbs the rounding of a hit projected back to the film (up to 3e-3
+  pixel on the bench's 400-unit plane). The pixel cannot be encoded in the positions'
+  sub-pixel bits instead: that needs margins of ~1e-2 pixel on such scenes, or a quarter of the
+  samples decode to a neighbour. The price: at low spp every pixel samples the same offsets,
+  so silhouettes alias rather than being noisy;
 * Mitsuba's ``render``, ``render_forward`` and ``render_backward`` run unchanged, given a view of
   the sensor (:class:`PixelSensor`) whose film (:class:`PixelFilm`) makes image blocks without
   the filter that splat each sample at the pixel it decoded to (:class:`CountingBlock`, reading

@@ -215,6 +215,11 @@ class Pyramid:
     def nbytes(self) -> int:
         return 4 * dr.width(self.buffer)
 
+    def level_nbytes(self, level: int = 0) -> int:
+        """Bytes of one level in the buffer (held or not: the size it has when built)."""
+        w, h = level_sizes(self.width, self.height)[level]
+        return 4 * w * h * self.stride
+
 
 def build_pyramid(tensor: mi.TensorXf, levels: bool = True) -> Pyramid:
     """The :class:`Pyramid` of ``tensor`` (H, W, 1|3): level 0 alone, or every level. A pure
@@ -254,6 +259,9 @@ class MIPMap:
     def sizes(self):
         return self.pyr.sizes
 
+    def level_nbytes(self, level: int = 0) -> int:
+        return self.pyr.level_nbytes(level)
+
     @property
     def n_levels(self) -> int:
         """Levels a width can select (pbrt's L), whether or not the pyramid holds them."""
@@ -281,8 +289,10 @@ class MIPMap:
         y = dr.floor(sanitize_coord(st.y * h))
         return self.fetch(view, x, y, active)
 
-    def _corners(self, level, st, active):
-        """The 4 texels around st (order (0,0), (1,0), (0,1), (1,1)) and the weights."""
+    def corners(self, level, st, active):
+        """The 4 texels of ``level`` around st, wrapped (order (0,0), (1,0), (0,1), (1,1)), the
+        weights ``(1 - fx, fx)``, ``(1 - fy, fy)`` of the bilinear reconstruction there, and the
+        level's size ``(w, h)``."""
         view = self.view(level)
         w, h = view.size
         px = sanitize_coord(dr.fma(st.x, w, -0.5))
@@ -308,7 +318,7 @@ class MIPMap:
         return texels, (1 - wx1, wx1), (1 - wy1, wy1), (w, h)
 
     def bilinear(self, level, st, active):
-        texels, wx, wy, _ = self._corners(level, st, active)
+        texels, wx, wy, _ = self.corners(level, st, active)
         out = None
         for (bx, by), v in zip(((0, 0), (1, 0), (0, 1), (1, 1)), texels):
             weight = wx[bx] * wy[by]          # Dr.Jit's texture: same products, same fma order
@@ -317,7 +327,7 @@ class MIPMap:
 
     def bilinear_gradient(self, level, st, active):
         """(f, df/ds, df/dt) of the bilinear reconstruction of the luminance (or channel)."""
-        texels, wx, wy, (w, h) = self._corners(level, st, active)
+        texels, wx, wy, (w, h) = self.corners(level, st, active)
         f00, f10, f01, f11 = (mi.luminance(v) if self.channels == 3 else v for v in texels)
         f = (f00 * wx[0] + f10 * wx[1]) * wy[0] + (f01 * wx[0] + f11 * wx[1]) * wy[1]
         dfdx = wy[0] * (f10 - f00) + wy[1] * (f11 - f01)
@@ -342,10 +352,8 @@ class MIPMap:
         """``fn(mask)`` where ``mask`` holds and 0 elsewhere, as a symbolic conditional: a
         packet of lanes none of which needs it skips it (a branch), where a masked computation
         would run it anyway — e.g. the second level of a trilinear lookup under magnification
-        (30% faster). Also while the texels carry gradients: forward and backward mode through
-        it inside ``pbrt_path``'s loop are tested against finite differences (an earlier Dr.Jit
-        failed in forward mode there, and lookups being differentiated took a masked form; a
-        mutation run showed the tests no longer tell the two apart)."""
+        (30% faster). Also used while the texels carry gradients: forward and backward mode
+        through it inside ``pbrt_path``'s loop are tested against finite differences."""
         return dr.if_stmt(args=(mask,), cond=mask, true_fn=fn,
                           false_fn=lambda m: dr.zeros(self.value_type()), label='pbrt_level')
 

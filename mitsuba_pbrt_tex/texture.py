@@ -157,6 +157,19 @@ class PbrtTexture:
     def nested_eval(self, name: str, si, kind: Kind, active):
         return kind.nested(self._nested[name], si, active)
 
+    def blend_nested(self, amount, si, kind: Kind, active):
+        """``(1 - amount)·tex1 + amount·tex2`` of the nested textures ``tex1``, ``tex2``, each
+        evaluated only where its weight is non-zero, as pbrt-v4's ``MixTexture``: the lookup is
+        saved, and a texture that is infinite or NaN where its weight is 0 leaves the blend
+        finite. Computed as ``tex1 + amount·(tex2 - tex1)``, exact for equal values whatever the
+        amount (pbrt's form is NaN for an amount of 3e38 and two values of 2: -inf + inf), and
+        kept within float32's range (:func:`finite_range`)."""
+        use1, use2 = amount != 1, amount != 0
+        t1 = self.nested_eval('tex1', si, kind, active & use1)
+        t2 = self.nested_eval('tex2', si, kind, active & use2)
+        both = dr.fma(amount, t2 - t1, t1)
+        return finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
+
     # ------------------------------------------------------------------ Mitsuba interface
     def mean(self):
         return mi.Float(0.5)

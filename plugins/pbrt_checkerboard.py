@@ -77,10 +77,7 @@ class Plugin(PbrtTexture):
 
     def evaluate(self, si, kind, active):
         w = self.weight(si)
-        use1, use2 = w != 1, w != 0
-        t1 = self.nested_eval('tex1', si, kind, active & use1)
-        t2 = self.nested_eval('tex2', si, kind, active & use2)
-        return dr.select(use1, (1 - w) * t1, 0) + dr.select(use2, w * t2, 0)
+        return self.blend_nested(w, si, kind, active)
 
     def mean(self):
         return mi.Float(0.5 * (nested_mean(self._nested['tex1']) + nested_mean(self._nested['tex2'])))

@@ -34,10 +34,7 @@ class Plugin(PbrtTexture):
 
     def evaluate(self, si, kind, active):
         amount = dr.abs(dr.dot(mi.Vector3f(self.context(si).n), mi.Vector3f(self.dir)))
-        use1, use2 = amount != 0, amount != 1
-        t1 = self.nested_eval('tex1', si, kind, active & use1)
-        t2 = self.nested_eval('tex2', si, kind, active & use2)
-        return dr.select(use1, amount * t1, 0) + dr.select(use2, (1 - amount) * t2, 0)
+        return self.blend_nested(1 - amount, si, kind, active)
 
     def mean(self):
         return mi.Float(0.5 * (nested_mean(self._nested['tex1']) + nested_mean(self._nested['tex2'])))

@@ -7,9 +7,9 @@
 | amount | float, texture | 0.5 | the blend weight (a float texture, so an rgb value is refused; not clamped) | yes |
 
 ``(1 - amount)·tex1 + amount·tex2``; like pbrt-v4, ``tex1`` is not evaluated where amount = 1 and
-``tex2`` not where amount = 0. Evaluated as ``tex1 + amount·(tex2 - tex1)``, which is exact where
-the two are equal whatever the amount (pbrt's form gives NaN for an amount of 3e38 and two equal
-values of 2: -inf + inf); a result beyond float32's range is float32's largest finite value.
+``tex2`` not where amount = 0. Evaluated as ``tex1 + amount·(tex2 - tex1)``, exact where the
+two are equal whatever the amount; a result beyond float32's range is float32's largest finite
+value (``PbrtTexture.blend_nested``).
 """
 
 import drjit as dr
@@ -28,11 +28,7 @@ class Plugin(PbrtTexture):
 
     def evaluate(self, si, kind, active):
         amount = self.nested_eval('amount', si, FLOAT, active)
-        use1, use2 = amount != 1, amount != 0
-        t1 = self.nested_eval('tex1', si, kind, active & use1)
-        t2 = self.nested_eval('tex2', si, kind, active & use2)
-        both = dr.fma(amount, t2 - t1, t1)
-        return finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
+        return self.blend_nested(amount, si, kind, active)
 
     def mean(self):
         a = nested_mean(self._nested['amount'])
