@@ -238,6 +238,19 @@ def finish_texels(texels: np.ndarray, encoding: Encoding, bit_depth: str) -> Dec
 
 
 # ---------------------------------------------------------------------------------- cache
+class PyramidSlot:
+    """Where the textures of one file read its pyramid: the best one built so far (a Dr.Jit
+    struct, so that ``dr.freeze`` sees the pyramid as an input of a frozen function). The file's
+    :class:`SharedImage` replaces a level-0 pyramid by the complete one when another texture
+    builds it — a change made where a texture is built, never in a lookup — so that no second
+    copy of level 0 stays alive."""
+
+    DRJIT_STRUCT = {'pyramid': object}
+
+    def __init__(self, pyramid=None):
+        self.pyramid = pyramid
+
+
 class SharedImage:
     """A decoded file as shared between textures: its texels, how they were decoded, and its
     pyramids (built on first request, once).
@@ -254,6 +267,7 @@ class SharedImage:
         self._complete: Pyramid | None = None     # every level
         self._level0: Pyramid | None = None       # level 0 alone, until a complete one exists
         self._lock = threading.Lock()
+        self.slot = PyramidSlot()                 # what textures of this file read
 
     def built(self, levels: bool) -> Pyramid | None:
         """The pyramid already built that serves a request (a complete one serves both)."""
@@ -271,8 +285,9 @@ class SharedImage:
             if levels:
                 self._complete = self._complete or pyr
                 self._level0 = None          # the complete one serves level-0 requests now
-                return self._complete
-            self._level0 = self._level0 or pyr
+            else:
+                self._level0 = self._level0 or pyr
+            self.slot.pyramid = self._complete or self._level0
             return self._complete or self._level0
 
 

@@ -53,7 +53,10 @@ class TraceInputs:
 
 class SceneCache:
     """The integrator's memory of the last scene and sensor it rendered (see the module
-    docstring)."""
+    docstring). A Dr.Jit struct, so that ``dr.freeze`` sees the arrays it holds (the shape
+    mask) as inputs of a frozen function."""
+
+    DRJIT_STRUCT = {'_scene': object, '_camera': object}
 
     def __init__(self):
         self._scene = None          # (shapes_dr held, readers held, SceneNeeds)

@@ -100,8 +100,9 @@ from mitsuba_pbrt_tex import gauss, pixel
 from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
-from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, decode_bitmap, load_image,
-                                    parse_encoding, release_build_temporaries, warn_clamped)
+from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, PyramidSlot, decode_bitmap,
+                                    load_image, parse_encoding, release_build_temporaries,
+                                    warn_clamped)
 from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import (FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid, build_pyramid,
                                      sanitized)
@@ -146,6 +147,8 @@ class Plugin(PbrtTexture):
         p.enum('format', 'auto', FORMATS)
         p.bool('accel', True)
         self.mapping = mapping_2d(p)
+        # params['…to_uv'], as bitmap's (the uv mapping only)
+        self._to_uv = self.mapping.to_uv_3x3() if self.mapping.name == 'uv' else None
         self._sampler, self._sampler_lock = None, threading.Lock()    # built when an emitter asks
         encoding = self._encoding(p)
         self._load(p, encoding)
@@ -204,9 +207,8 @@ class Plugin(PbrtTexture):
             img = self._call(lambda: decode_bitmap(bmp, encoding, 'the bitmap'), 'bitmap')
             self.data, self.source = mi.TensorXf(img.texels), 'bitmap object'
             self._warn_nonfinite(img.nonfinite)
-        self.pyramid = self._build(levels=self.filter_name in ('trilinear', 'ewa', 'box'))
         self._box_tables = None
-        self._sync_box_tables()
+        self._rebuild(levels=self.filter_name in ('trilinear', 'ewa', 'box'))
 
     def _call(self, fn, param):
         try:
@@ -244,59 +246,51 @@ class Plugin(PbrtTexture):
             mi.Log(mi.LogLevel.Warn, f'{self.NAME}: {count} non-finite texel value(s) '
                                      f'replaced by 0')
 
-    def _build(self, levels: bool) -> Pyramid:
-        """The pyramid of ``self.data`` (every level, or level 0 alone): the file's shared one
-        while the texels are still the file's, else built from the tensor — inside the AD graph
-        even during a render's primal pass (which suspends gradients), so gradients enabled on
-        the tensor reach every level. Large builds give their temporaries back."""
-        if self._shared is not None:
-            return self._shared.pyramid(levels)
-        with dr.resume_grad():
-            pyramid = build_pyramid(self.data, levels)
-        release_build_temporaries(pyramid)
-        return pyramid
+    @property
+    def pyramid(self) -> Pyramid:
+        """The pyramid lookups read: while the texels are still a file's, the best one the file's
+        cache has built (a complete pyramid serves level-0 lookups too, so once another texture
+        of the file has built it no second copy of level 0 stays alive); else the texture's
+        own (a :class:`~mitsuba_pbrt_tex.image.PyramidSlot`, filled in :meth:`_rebuild`)."""
+        return self.pyramid_slot.pyramid
 
-    def _sync_box_tables(self):
-        """``box`` only: (re)build the prefix tables of the current pyramid — one explicit pure
-        step, in the AD graph like the pyramid — unless they are already its own."""
-        if self.filter_name != 'box':
-            return None
-        tables = self._box_tables
-        if tables is None or tables.pyramid is not self.pyramid:
-            if dr.flag(dr.JitFlag.SymbolicScope):
-                raise PluginError(f'{self.NAME}: the box filter\'s tables are out of date inside '
-                                  f'a symbolic loop or call; call params.update() before '
-                                  f'rendering')
+    def _rebuild(self, levels: bool) -> None:
+        """The one place the internals follow the texels: the pyramid of ``self.data`` (every
+        level, or level 0 alone) — the file's shared one while the texels are still the file's,
+        else built from the tensor, inside the AD graph even during a render's primal pass
+        (which suspends gradients), so gradients enabled on the tensor reach every level; large
+        builds give their temporaries back — and, for ``box``, its prefix tables (pure, in the
+        AD graph like the pyramid)."""
+        self._levels = levels
+        if self._shared is not None:
+            self._shared.pyramid(levels)            # built once per file
+            self.pyramid_slot = self._shared.slot          # the file's textures read one slot
+        else:
             with dr.resume_grad():
-                self._box_tables = tables = build_box_tables(self.pyramid, self.wrap)
-        return tables
+                pyramid = build_pyramid(self.data, levels)
+            release_build_temporaries(pyramid)
+            self.pyramid_slot = PyramidSlot(pyramid)
+        if self.filter_name == 'box':
+            with dr.resume_grad():
+                self._box_tables = build_box_tables(self.pyramid, self.wrap)
+
+    def _state(self):
+        """(pyramid, box tables) for a lookup — read only. Stale state is an error naming the
+        fix: gradients enabled on ``data`` after the pyramid was built, without
+        ``params.update()``, would not reach the texels (the pyramid is a copy; Mitsuba's
+        ``bitmap`` gives no gradient at all then)."""
+        pyr = self.pyramid
+        if dr.grad_enabled(self.data) and not dr.grad_enabled(pyr.buffer):
+            raise PluginError(
+                f'{self.NAME}: parameter "data": gradients were enabled on it after the '
+                f'texture was built, so they cannot reach its MIP levels; call '
+                f'params.update() after dr.enable_grad(params[...]) (Mitsuba\'s optimizers '
+                f'do this in params.update(opt))')
+        return pyr, self._box_tables
 
     def _make_filter(self):
         self.filter = TextureFilter(self.filter_name, self.wrap, self.max_anisotropy,
                                     WIDTH_CONVENTIONS[self.width_convention], self.sort_lookups)
-
-    def _lookup_pyramid(self) -> Pyramid:
-        """The pyramid lookups read, brought up to date with the tensor first.
-
-        Gradients enabled on ``data`` after the pyramid was built, without ``params.update()``,
-        would not reach the texels (the pyramid is a copy): outside a symbolic loop or call the
-        pyramid is rebuilt here; inside one (a render's kernel) it cannot be, and that is an
-        error naming the fix (Mitsuba's ``bitmap`` gives no gradient at all then). A texture
-        that reads level 0 alone of a shared file switches to the file's complete pyramid once
-        another texture has built it (same level 0), so the level-0 copy can be freed."""
-        pyr = self.pyramid
-        if dr.grad_enabled(self.data) and not dr.grad_enabled(pyr.buffer):
-            if dr.flag(dr.JitFlag.SymbolicScope):
-                raise PluginError(
-                    f'{self.NAME}: parameter "data": gradients were enabled on it after the '
-                    f'texture was built, so they cannot reach its MIP levels; call '
-                    f'params.update() after dr.enable_grad(params[...]) (Mitsuba\'s optimizers '
-                    f'do this in params.update(opt))')
-            self._shared = None
-            self.pyramid = pyr = self._build(pyr.complete)
-        elif self._shared is not None and not pyr.complete:
-            self.pyramid = pyr = self._shared.built(levels=True) or pyr
-        return pyr
 
     # ------------------------------------------------------------------ evaluation
     def context(self, si):
@@ -313,8 +307,8 @@ class Plugin(PbrtTexture):
             v = self._film_filtered(si, active, pixels) * self.scale
         else:
             tc = self.mapping.map(self.context(si))
-            pyr = self._lookup_pyramid()
-            v = self.filter(pyr, tc, active, self._sync_box_tables()) * self.scale
+            pyr, tables = self._state()
+            v = self.filter(pyr, tc, active, tables) * self.scale
         if self.invert:
             v = dr.maximum(0, 1 - v)
         return v
@@ -326,8 +320,7 @@ class Plugin(PbrtTexture):
         active = mi.Bool(active)
         centre, g, h, ok = pixel.filter_context(si, pixels)
         tc = self.mapping.map(centre)
-        pyr = self._lookup_pyramid()
-        tables = self._sync_box_tables()
+        pyr, tables = self._state()
         kernel = gauss.pixel_filter(MIPMap(pyr, self.wrap), tc.st,
                                     mi.Vector2f(tc.dsdx, tc.dtdx), mi.Vector2f(tc.dsdy, tc.dtdy),
                                     g, h, pixels, active & ok)
@@ -342,7 +335,7 @@ class Plugin(PbrtTexture):
     def eval_1_grad(self, si, active=True):
         active = mi.Bool(active)
         tc = self.mapping.map(self.context(si))
-        f, dfds, dfdt = self.filter.gradient(self._lookup_pyramid(), tc, active)
+        f, dfds, dfdt = self.filter.gradient(self._state()[0], tc, active)
         jac = self.mapping.map(TextureEvalContext.uv_jacobian(si))
         dfdu = (dfds * jac.dsdx + dfdt * jac.dtdx) * self.scale
         dfdv = (dfds * jac.dsdy + dfdt * jac.dtdy) * self.scale
@@ -372,20 +365,18 @@ class Plugin(PbrtTexture):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
 
     def prepare_differentials(self):
-        if not self.pyramid.complete:
-            self.pyramid = self._build(levels=True)
+        if not self._levels:
+            self._rebuild(levels=True)
         return True
 
     def traverse(self, cb):
         cb.put('data', self.data, mi.ParamFlags.Differentiable)
         cb.put('scale', self.scale, mi.ParamFlags.Differentiable)
-        if self.mapping.name == 'uv':
-            if getattr(self, '_to_uv', None) is None:
-                self._to_uv = self.mapping.to_uv_3x3()
+        if self._to_uv is not None:
             cb.put('to_uv', self._to_uv, mi.ParamFlags.NonDifferentiable)
 
     def on_parameters_changed(self, keys):
-        if (not keys or 'to_uv' in keys) and getattr(self, '_to_uv', None) is not None:
+        if (not keys or 'to_uv' in keys) and self._to_uv is not None:
             self._set_to_uv(self._to_uv)
         if self.invert and (not keys or 'scale' in keys):
             # only invert makes the sampling density depend on the scale (read now, outside
@@ -404,8 +395,7 @@ class Plugin(PbrtTexture):
         # Texels being differentiated get every level now: forward mode propagates the input's
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
         # lazily during the render (under pbrt_path) would miss it.
-        self.pyramid = self._build(self.pyramid.complete or dr.grad_enabled(self.data))
-        self._sync_box_tables()
+        self._rebuild(self._levels or dr.grad_enabled(self.data))
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
 
     def _check_new_texels(self):

@@ -15,6 +15,7 @@ import reference_mipmap as ref
 from conftest import A, assert_texel_gradients_match_fd, make_si
 from mitsuba_pbrt_tex.image import image_cache
 from mitsuba_pbrt_tex.mipmap import build_pyramid, level_sizes
+from mitsuba_pbrt_tex.params import PluginError
 
 DATA = os.path.join(os.path.dirname(__file__), 'data')
 LUM = ref.LUM
@@ -549,7 +550,7 @@ def _children(obj):
 def test_file_textures_without_pyramid_drop_their_copy_when_another_builds_it():
     """A bilinear and a trilinear texture of the same file share one RGBA copy of level 0: once
     the trilinear one builds the pyramid, whose buffer starts with level 0, the bilinear one
-    reads that buffer too at its next lookup (no second copy is kept alive) and still matches
+    reads that buffer too (the file's cache serves it; no second copy is kept alive) and matches
     Mitsuba's ``bitmap`` (≤ 1e-6, as in the parity tests) before and after."""
     image_cache.clear()
     path = os.path.join(DATA, 'rgb_13x17.exr')
@@ -559,7 +560,7 @@ def test_file_textures_without_pyramid_drop_their_copy_when_another_builds_it():
     want = A(bitmap.eval(si))
     np.testing.assert_allclose(A(bil.eval(si)), want, atol=1e-6)
     tri = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'trilinear'})
-    assert not bil.pyramid.complete and tri.pyramid.complete
+    assert bil.pyramid is tri.pyramid and tri.pyramid.complete
     np.testing.assert_allclose(A(bil.eval(si)), want, atol=1e-6)
     assert bil.pyramid.buffer.index == tri.pyramid.buffer.index
 
@@ -597,11 +598,13 @@ def test_ewa_weight_matches_pbrt_table():
 @pytest.mark.parametrize('channels', [1, 3])
 @pytest.mark.parametrize('filt', ['trilinear', 'ewa'])
 def test_gradients_enabled_after_pyramid_reach_level0(filt, channels, rng):
-    """The pyramid keeps a copy of level 0 in its buffer; if gradients are enabled on the
-    tensor afterwards (no params.update()), level-0 lookups must read the tensor itself, so the
-    gradient of a lookup with a footprint of 0.01 texel (level 0) is its filter weights (they
-    sum to 1 per lookup), not zero; the values still match the numpy references (bilinear at
-    level 0 for trilinear, pbrt's literal EWA; tolerances as in their own tests)."""
+    """The pyramid keeps a copy of level 0 in its buffer; gradients enabled on the tensor
+    afterwards cannot reach the texels through it. A lookup does not rebuild the texture (it
+    reads its state only), so without ``params.update()`` it is an error naming the fix — as
+    inside a render's kernel —, and after it the gradient of a lookup with a footprint of 0.01
+    texel (level 0) is its filter weights (they sum to 1 per lookup), not zero; the values
+    still match the numpy references (bilinear at level 0 for trilinear, pbrt's literal EWA;
+    tolerances as in their own tests)."""
     img = rng.random((16, 20, channels)).astype(np.float32)
     tex = imagemap(img, filter=filt)
     tex.prepare_differentials()
@@ -616,6 +619,11 @@ def test_gradients_enabled_after_pyramid_reach_level0(filt, channels, rng):
         tol = 2e-5
     params = mi.traverse(tex)
     dr.enable_grad(params['data'])
+    with pytest.raises(PluginError, match=r'pbrt_imagemap: parameter "data": gradients were '
+                                           r'enabled on it after the texture was built.*'
+                                           r'params\.update\(\)'):
+        tex.eval(si)
+    params.update()
     got = A(tex.eval(si)).reshape(50, -1)[:, :channels]      # 1 channel: grey RGB
     np.testing.assert_allclose(got, want, atol=tol)
     value = tex.eval_1(si)
