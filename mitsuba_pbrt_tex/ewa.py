@@ -42,6 +42,7 @@ layouts and loop shapes measured, and why they lost, are in the design notes of
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -128,8 +129,17 @@ class EWAFilter:
         last = len(mip.sizes) - 1
         beyond = flevel > last
         view = mip.view(mi.UInt32(dr.minimum(flevel, last)))
-        w, h = view.size
+        e = self._ellipse(mip, view, st, dst0, dst1)
+        acc, acc_w = _ellipse_sum(mip, view, e, active & ~beyond)
+        T = mip.value_type()
+        result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1) * (1 / _ACC_SCALE),
+                           dr.zeros(T))
+        return dr.select(beyond, mip.coarsest(active & beyond), result)
 
+    def _ellipse(self, mip, view, st, dst0, dst1) -> '_Ellipse':
+        """pbrt's ellipse at the level of ``view``, in its texel coordinates, and its bounding
+        box."""
+        w, h = view.size
         s = sanitize_coord(dr.fma(st.x, w, -0.5))
         t = sanitize_coord(dr.fma(st.y, h, -0.5))
         ds0, dt0 = dst0.x * w, dst0.y * h
@@ -151,73 +161,88 @@ class EWAFilter:
         # produce an endless loop; such lanes are at the coarsest level where 1 texel suffices.
         # The bound is above every finite footprint's extent, so it never cuts an ellipse: after
         # the anisotropy clamp and the level choice the axes are at most 2 and
-        # 2·maxanisotropy texels long, the half-width at most their length + 1. (A bound of
-        # twice the image size cut the ellipses of images a few texels wide, where the level
-        # cannot grow with the footprint: up to 0.06 off pbrt's EWA for texels in [0, 1].)
+        # 2·maxanisotropy texels long, the half-width at most their length + 1 (a bound of twice
+        # the image size would cut the ellipses of images a few texels wide, where the level
+        # cannot grow with the footprint).
         limit = 2.0 * max(mip.width, mip.height, 4.0 * self.max_anisotropy) + 2
         u_ext = dr.minimum(_finite(u_ext), limit)
         v_ext = dr.minimum(_finite(v_ext), limit)
-        s0, s1 = dr.ceil(s - u_ext), dr.floor(s + u_ext)
-        t0, t1 = dr.ceil(t - v_ext), dr.floor(t + v_ext)
+        return _Ellipse(s, t, A, B, C, dr.ceil(s - u_ext), dr.floor(s + u_ext),
+                        dr.ceil(t - v_ext), dr.floor(t + v_ext))
 
-        run = active & ~beyond
-        inv_2a = 0.5 * dr.rcp(A)
-        separable = mip.wrap != 'octahedralsphere'
 
-        def start_row(it):
-            """Column span of row ``it`` (roots of the quadratic) and its wrapped row."""
-            tt = it - t
-            disc = (B * tt) * (B * tt) - 4 * A * (C * tt * tt - 1)
-            root = dr.safe_sqrt(disc)
-            lo = dr.maximum(s0, dr.ceil(s + (-B * tt - root) * inv_2a - SPAN_SLACK))
-            hi = dr.minimum(s1, dr.floor(s + (-B * tt + root) * inv_2a + SPAN_SLACK))
-            hi = dr.select(disc >= 0, hi, lo - 1)
+@dataclass
+class _Ellipse:
+    """pbrt's EWA ellipse ``A·ds² + B·ds·dt + C·dt² < 1`` around ``(s, t)`` (texel coordinates of
+    one level) and its bounding box ``[s0, s1] × [t0, t1]``."""
+    s: object
+    t: object
+    A: object
+    B: object
+    C: object
+    s0: object
+    s1: object
+    t0: object
+    t1: object
+
+
+def _ellipse_sum(mip, view, e: _Ellipse, run):
+    """(Σ weight·texel, Σ weight) over the texels inside each lane's ellipse, row by row: each
+    row's column span from the roots of the quadratic, ``COLUMNS_PER_STEP`` columns a step."""
+    w, h = view.size
+    inv_2a = 0.5 * dr.rcp(e.A)
+    separable = mip.wrap != 'octahedralsphere'
+
+    def start_row(it):
+        """Column span of row ``it`` (roots of the quadratic) and its wrapped row."""
+        tt = it - e.t
+        disc = (e.B * tt) * (e.B * tt) - 4 * e.A * (e.C * tt * tt - 1)
+        root = dr.safe_sqrt(disc)
+        lo = dr.maximum(e.s0, dr.ceil(e.s + (-e.B * tt - root) * inv_2a - SPAN_SLACK))
+        hi = dr.minimum(e.s1, dr.floor(e.s + (-e.B * tt + root) * inv_2a + SPAN_SLACK))
+        hi = dr.select(disc >= 0, hi, lo - 1)
+        if separable:
+            _, wy, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap, *view.inv_size)
+            return lo, hi, mi.Float(wy), valid_y
+        return lo, hi, it, mi.Bool(True)
+
+    def cond(it, i_s, s_end, row_y, row_ok, acc, acc_w):
+        return run & (it <= e.t1)
+
+    def body(it, i_s, s_end, row_y, row_ok, acc, acc_w):
+        tt = it - e.t
+        ctt = e.C * tt * tt
+        btt = e.B * tt
+        if separable:                       # the columns' wrapped indices, wrapping once
+            cols = adjacent_wrapped(i_s, w, mip.wrap, view.inv_size[0])
+        for k in range(COLUMNS_PER_STEP):
+            col = i_s + k
+            ss = col - e.s
+            r2 = dr.fma(e.A * ss, ss, dr.fma(btt, ss, ctt))
+            inside = (col <= s_end) & (r2 < R2_MAX) & run
+            wgt = dr.select(inside, lut_weight(r2), 0)
             if separable:
-                _, wy, valid_y = wrap_2d(mi.Float(0), it, w, h, mip.wrap, *view.inv_size)
-                return lo, hi, mi.Float(wy), valid_y
-            return lo, hi, it, mi.Bool(True)
+                ix, valid = cols[k]
+                texel = view.gather(row_y, ix, inside & row_ok & valid)
+            else:
+                texel = mip.fetch(view, col, it, inside)
+            acc = dr.fma(texel, wgt * _ACC_SCALE, acc)
+            acc_w = acc_w + wgt
+        # advance: next columns, or the first column of the next row
+        next_row = i_s + COLUMNS_PER_STEP > s_end
+        it = dr.select(next_row, it + 1, it)
+        lo, hi, ny, nok = start_row(it)
+        i_s = dr.select(next_row, lo, i_s + COLUMNS_PER_STEP)
+        s_end = dr.select(next_row, hi, s_end)
+        row_y = dr.select(next_row, ny, row_y)
+        row_ok = dr.select(next_row, nok, row_ok)
+        return it, i_s, s_end, row_y, row_ok, acc, acc_w
 
-        T = mip.value_type()
-        it = mi.Float(t0)
-        i_s, s_end, row_y, row_ok = start_row(it)
-
-        def cond(it, i_s, s_end, row_y, row_ok, acc, acc_w):
-            return run & (it <= t1)
-
-        def body(it, i_s, s_end, row_y, row_ok, acc, acc_w):
-            tt = it - t
-            ctt = C * tt * tt
-            btt = B * tt
-            if separable:                       # the columns' wrapped indices, wrapping once
-                cols = adjacent_wrapped(i_s, w, mip.wrap, view.inv_size[0])
-            for k in range(COLUMNS_PER_STEP):
-                col = i_s + k
-                ss = col - s
-                r2 = dr.fma(A * ss, ss, dr.fma(btt, ss, ctt))
-                inside = (col <= s_end) & (r2 < R2_MAX) & run
-                wgt = dr.select(inside, lut_weight(r2), 0)
-                if separable:
-                    ix, valid = cols[k]
-                    texel = view.gather(row_y, ix, inside & row_ok & valid)
-                else:
-                    texel = mip.fetch(view, col, it, inside)
-                acc = dr.fma(texel, wgt * _ACC_SCALE, acc)
-                acc_w = acc_w + wgt
-            # advance: next columns, or the first column of the next row
-            next_row = i_s + COLUMNS_PER_STEP > s_end
-            it = dr.select(next_row, it + 1, it)
-            lo, hi, ny, nok = start_row(it)
-            i_s = dr.select(next_row, lo, i_s + COLUMNS_PER_STEP)
-            s_end = dr.select(next_row, hi, s_end)
-            row_y = dr.select(next_row, ny, row_y)
-            row_ok = dr.select(next_row, nok, row_ok)
-            return it, i_s, s_end, row_y, row_ok, acc, acc_w
-
-        state = (it, i_s, s_end, row_y, row_ok, dr.zeros(T), mi.Float(0))
-        *_, acc, acc_w = dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_ewa')
-        result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1) * (1 / _ACC_SCALE),
-                           dr.zeros(T))
-        return dr.select(beyond, mip.coarsest(active & beyond), result)
+    it = mi.Float(e.t0)
+    i_s, s_end, row_y, row_ok = start_row(it)
+    state = (it, i_s, s_end, row_y, row_ok, dr.zeros(mip.value_type()), mi.Float(0))
+    *_, acc, acc_w = dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_ewa')
+    return acc, acc_w
 
 
 def _weight_polynomial(degree: int = 7) -> list[float]:

@@ -172,16 +172,32 @@ def _grad_phi(pt: mi.Point3f) -> mi.Vector3f:
     return mi.Vector3f(_safe_div(-pt.y, rho2), _safe_div(pt.x, rho2), 0.0)
 
 
-class SphericalMapping:
-    """``s = θ/π, t = φ/2π`` of the texture-space direction of p (θ from +z, φ from +x)."""
+class _DirectionMapping:
+    """A mapping of the texture-space point of p (``to_world``: texture space → world): st and
+    the gradients of s and t there (:meth:`st_gradients`), chained with dp/dx, dp/dy."""
 
-    name = 'spherical'
+    name = 'direction'
 
     def __init__(self, to_world=None):
         self.xf = _WorldToTexture(to_world)
 
     def map(self, ctx: TextureEvalContext) -> TexCoord2D:
-        pt = self.xf.point(ctx.p)
+        st, grad_s, grad_t = self.st_gradients(self.xf.point(ctx.p))
+        return _chain(grad_s, grad_t, self.xf.vector(ctx.dpdx), self.xf.vector(ctx.dpdy), st)
+
+    def st_gradients(self, pt):
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        return self.name
+
+
+class SphericalMapping(_DirectionMapping):
+    """``s = θ/π, t = φ/2π`` of the texture-space direction of p (θ from +z, φ from +x)."""
+
+    name = 'spherical'
+
+    def st_gradients(self, pt):
         rho2 = dr.fma(pt.x, pt.x, pt.y * pt.y)
         r2 = dr.fma(pt.z, pt.z, rho2)
         rho = dr.sqrt(rho2)
@@ -191,31 +207,17 @@ class SphericalMapping:
         st = mi.Point2f(theta * INV_PI, phi * INV_2PI)
         # ∇θ = (x z / ρ, y z / ρ, -ρ) / r²   (s = θ/π: this is what pbrt-v4 calls dtdp)
         grad_theta = mi.Vector3f(_safe_div(pt.x * pt.z, rho), _safe_div(pt.y * pt.z, rho), -rho)
-        grad_s = _safe_div(1.0, r2) * grad_theta * INV_PI
-        grad_t = _grad_phi(pt) * INV_2PI
-        return _chain(grad_s, grad_t, self.xf.vector(ctx.dpdx), self.xf.vector(ctx.dpdy), st)
-
-    def describe(self) -> str:
-        return 'spherical'
+        return st, _safe_div(1.0, r2) * grad_theta * INV_PI, _grad_phi(pt) * INV_2PI
 
 
-class CylindricalMapping:
+class CylindricalMapping(_DirectionMapping):
     """``s = (π + atan2(y, x)) / 2π``, ``t = z`` in texture space (pbrt-v4: raw z)."""
 
     name = 'cylindrical'
 
-    def __init__(self, to_world=None):
-        self.xf = _WorldToTexture(to_world)
-
-    def map(self, ctx: TextureEvalContext) -> TexCoord2D:
-        pt = self.xf.point(ctx.p)
+    def st_gradients(self, pt):
         st = mi.Point2f((math.pi + dr.atan2(pt.y, pt.x)) * INV_2PI, pt.z)
-        grad_s = _grad_phi(pt) * INV_2PI
-        grad_t = mi.Vector3f(0, 0, 1)
-        return _chain(grad_s, grad_t, self.xf.vector(ctx.dpdx), self.xf.vector(ctx.dpdy), st)
-
-    def describe(self) -> str:
-        return 'cylindrical'
+        return st, _grad_phi(pt) * INV_2PI, mi.Vector3f(0, 0, 1)
 
 
 class PlanarMapping:

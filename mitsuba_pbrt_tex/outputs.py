@@ -98,3 +98,11 @@ def write_png(path: str, rgb: np.ndarray, exposure: float = 0.0) -> None:
         img = np.repeat(img, 3, axis=2)
     bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
     _atomic(path, lambda tmp: bmp.write(tmp))
+
+
+def save_figure(fig, path: str, dpi: int) -> None:
+    """Lay out, write and close a matplotlib figure (the benchmark and demo charts)."""
+    import matplotlib.pyplot as plt
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)

@@ -242,8 +242,18 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     check_not_inputs((exr_path, png_path), inputs | read)    # what our plugins actually read
     if not scene.sensors():
         raise RenderError(f'scene "{scene_path}" has no sensor: add a <sensor> (a camera)')
-    sensor = scene.sensors()[0]
-    integrator = scene.integrator()
+    total, passes, per_pass = _sample_plan(scene.sensors()[0], spp)
+    image, t_first, t_render = _render_passes(scene, total, passes, per_pass, progress, stream)
+    _write_outputs(exr_path, png_path, image, scene.integrator())
+    return dict(scene=scene_path, exr=exr_path, png=png_path, spp=total, passes=passes,
+                load_s=t_load, first_pass_s=t_first, render_s=t_render,
+                nonfinite=int((~np.isfinite(image)).sum()), shape=tuple(image.shape),
+                variant=variant)
+
+
+def _sample_plan(sensor, spp):
+    """(total spp, passes, spp per pass): ``--spp`` or the scene's sampler, in passes that
+    Dr.Jit can render at once."""
     total = int(spp) if spp is not None else int(sensor.sampler().sample_count())
     if total < 1:
         raise RenderError(f"the scene's sampler has sample_count {total}; give --spp >= 1")
@@ -255,6 +265,14 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
         raise RenderError(f'{where} {total} is too many for one image of {size[0]}x{size[1]}: a '
                           f'pass of {per_pass} samples per pixel needs {per_pass * pixels} '
                           f'samples at once, and Dr.Jit renders at most 2^32 - 1')
+    return total, passes, per_pass
+
+
+def _render_passes(scene, total, passes, per_pass, progress, stream):
+    """(the mean image of the passes, time of the first pass, total time); the integrator's
+    footprint follows the total spp (``set_total_spp``) while it renders."""
+    import mitsuba as mi
+    integrator = scene.integrator()
     if hasattr(integrator, 'set_total_spp'):
         integrator.set_total_spp(total)
     acc = None
@@ -276,13 +294,14 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
             integrator.set_total_spp(None)
     if progress:
         stream.write('\n')
-    image = (acc / passes).astype(np.float32)
-    t_render = time.perf_counter() - t_start
-    bad = int((~np.isfinite(image)).sum())
+    return (acc / passes).astype(np.float32), t_first, time.perf_counter() - t_start
 
+
+def _write_outputs(exr_path, png_path, image, integrator):
+    """The EXR (RGB [+ alpha] + the integrator's AOVs, named) and the tone-mapped PNG."""
     from .outputs import write_exr, write_png
     names = None
-    if image.ndim == 3 and image.shape[2] > 3:       # RGB [+ alpha] + the integrator's AOVs
+    if image.ndim == 3 and image.shape[2] > 3:
         aovs = list(integrator.aov_names()) if hasattr(integrator, 'aov_names') else []
         alpha = ['A'] if image.shape[2] - 3 - len(aovs) == 1 else []
         names = ['R', 'G', 'B'] + alpha + aovs
@@ -291,7 +310,3 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
         write_png(png_path, image[..., :3] if image.ndim == 3 else image)
     except Exception as e:
         raise RenderError(f'writing the image failed: {error_line(e)}') from None
-    info = dict(scene=scene_path, exr=exr_path, png=png_path, spp=total, passes=passes,
-                load_s=t_load, first_pass_s=t_first, render_s=t_render, nonfinite=bad,
-                shape=tuple(image.shape), variant=variant)
-    return info

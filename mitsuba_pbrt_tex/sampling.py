@@ -45,6 +45,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .wrap import octahedral_remap
+
 LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
 
 
@@ -80,13 +82,7 @@ def _wrap_np(x, y, w, h, mode):
         x, y = np.mod(x, 2 * w), np.mod(y, 2 * h)
         x, y = np.where(x >= w, 2 * w - 1 - x, x), np.where(y >= h, 2 * h - 1 - y, y)
     elif mode == 'octahedralsphere':
-        left, right = x < 0, x >= w
-        x = np.where(left, -x, np.where(right, 2 * w - 1 - x, x))
-        y = np.where(left | right, h - 1 - y, y)
-        top, bottom = y < 0, y >= h
-        x = np.where(top | bottom, w - 1 - x, x)
-        y = np.where(top, -y, np.where(bottom, 2 * h - 1 - y, y))
-        x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
+        x, y = octahedral_remap(x, y, w, h, np.where, np.clip)
     else:
         raise ValueError(mode)
     return x, y, valid

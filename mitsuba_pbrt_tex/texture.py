@@ -15,6 +15,9 @@ variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single bas
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import drjit as dr
 import mitsuba as mi
 
@@ -23,67 +26,33 @@ from .differentials import TextureEvalContext
 from .params import Params
 
 
+@dataclass(frozen=True)
 class Kind:
-    """How values are represented in one evaluation mode."""
+    """How values are represented in one evaluation mode: ``nested(tex, si, active)`` evaluates
+    a nested texture in it, ``from_rgb`` and ``from_float`` convert a value to it (looked up in
+    the current variant when called)."""
 
-    name = 'abstract'
-
-    def nested(self, tex: mi.Texture, si, active):
-        raise NotImplementedError
-
-    def from_rgb(self, rgb: mi.Color3f):
-        raise NotImplementedError
-
-    def from_float(self, value: mi.Float):
-        raise NotImplementedError
+    name: str
+    nested: Callable
+    from_rgb: Callable
+    from_float: Callable
 
 
-class _Spectrum(Kind):
-    name = 'spectrum'
-
-    def nested(self, tex, si, active):
-        return tex.eval(si, active)
-
-    def from_rgb(self, rgb):
-        return variants.rgb_to_spectrum(rgb)
-
-    def from_float(self, value):
-        return mi.UnpolarizedSpectrum(value)
+def _nested_rgb(tex, si, active):
+    if is_pbrt_texture(tex):
+        return tex.eval_3(si, active)
+    if mi.is_monochromatic:
+        return mi.Color3f(tex.eval_1(si, active))
+    # In RGB variants eval() is Color3f and, unlike eval_3, every built-in implements it
+    # (Mitsuba's checkerboard has no eval_3).
+    return mi.Color3f(tex.eval(si, active))
 
 
-class _Float(Kind):
-    name = 'float'
-
-    def nested(self, tex, si, active):
-        return tex.eval_1(si, active)
-
-    def from_rgb(self, rgb):
-        return mi.luminance(rgb)
-
-    def from_float(self, value):
-        return mi.Float(value)
-
-
-class _RGB(Kind):
-    name = 'rgb'
-
-    def nested(self, tex, si, active):
-        if is_pbrt_texture(tex):
-            return tex.eval_3(si, active)
-        if mi.is_monochromatic:
-            return mi.Color3f(tex.eval_1(si, active))
-        # In RGB variants eval() is Color3f and, unlike eval_3, every built-in implements it
-        # (Mitsuba's checkerboard has no eval_3).
-        return mi.Color3f(tex.eval(si, active))
-
-    def from_rgb(self, rgb):
-        return mi.Color3f(rgb)
-
-    def from_float(self, value):
-        return mi.Color3f(value)
-
-
-SPECTRUM, FLOAT, RGB = _Spectrum(), _Float(), _RGB()
+SPECTRUM = Kind('spectrum', lambda tex, si, active: tex.eval(si, active),
+                lambda rgb: variants.rgb_to_spectrum(rgb), lambda v: mi.UnpolarizedSpectrum(v))
+FLOAT = Kind('float', lambda tex, si, active: tex.eval_1(si, active),
+             lambda rgb: mi.luminance(rgb), lambda v: mi.Float(v))
+RGB = Kind('rgb', _nested_rgb, lambda rgb: mi.Color3f(rgb), lambda v: mi.Color3f(v))
 
 
 def is_pbrt_texture(obj) -> bool:

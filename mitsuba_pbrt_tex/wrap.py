@@ -60,16 +60,24 @@ def wrap_2d(x, y, w, h, mode: str, inv_w=None, inv_h=None):
         valid = (x >= 0) & (x < w) & (y >= 0) & (y < h)
         x, y = dr.clip(x, 0, w - 1), dr.clip(y, 0, h - 1)
     elif mode == 'octahedralsphere':
-        left, right = x < 0, x >= w
-        x = dr.select(left, -x, dr.select(right, 2 * w - 1 - x, x))
-        y = dr.select(left | right, h - 1 - y, y)
-        top, bottom = y < 0, y >= h
-        x = dr.select(top | bottom, w - 1 - x, x)
-        y = dr.select(top, -y, dr.select(bottom, 2 * h - 1 - y, y))
-        x, y = dr.clip(x, 0, w - 1), dr.clip(y, 0, h - 1)
+        x, y = octahedral_remap(x, y, w, h, dr.select, dr.clip)
     else:
         x, y = wrap_1d(x, w, mode, inv_w), wrap_1d(y, h, mode, inv_h)
     return mi.Int32(x), mi.Int32(y), valid
+
+
+def octahedral_remap(x, y, w, h, select, clip):
+    """pbrt-v4's ``RemapPixelCoords`` for the octahedral sphere: integer texel coordinates one
+    step outside the image folded back across the edge they crossed, then clamped; ``select``
+    and ``clip`` are Dr.Jit's (lookups) or numpy's (``np.where``, ``np.clip``: the sampling
+    tables), so both use one rule."""
+    left, right = x < 0, x >= w
+    x = select(left, -x, select(right, 2 * w - 1 - x, x))
+    y = select(left | right, h - 1 - y, y)
+    top, bottom = y < 0, y >= h
+    x = select(top | bottom, w - 1 - x, x)
+    y = select(top, -y, select(bottom, 2 * h - 1 - y, y))
+    return clip(x, 0, w - 1), clip(y, 0, h - 1)
 
 
 def adjacent_wrapped(x0, n, mode: str, inv_n=None):

@@ -36,45 +36,45 @@ GIVEN_ORDER = 'ewa (given order, as in a render kernel)'
 TARGETS = {'point (level 0)': 1.0, 'bilinear (level 0)': 1.0, 'trilinear': 0.5, 'ewa': 0.05}
 
 
-def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant='llvm_ad_rgb',
-        max_anisotropy=8.0, seed=1, coherent=False, out=print, sweep=(3.0, 6.0, 12.0)):
-    import drjit as dr
+class _Batch:
+    """``count`` lookups at random (or raster-order, ``coherent``) uv with footprints of
+    ``anisotropy``:1 at random orientations; :meth:`set_minor` sets their minor axis."""
+
+    def __init__(self, rng, size, count, anisotropy, coherent):
+        import drjit as dr
+        import mitsuba as mi
+        self.size, self.count, self.anisotropy = size, count, anisotropy
+        self.si = dr.zeros(mi.SurfaceInteraction3f, count)
+        if coherent:
+            # neighbouring lookups at neighbouring texels, as neighbouring pixels of a render: a
+            # raster of the texture, one lookup per cell, jittered within the cell
+            side = int(math.ceil(math.sqrt(count)))
+            k = np.arange(count)
+            self.u = (k % side + rng.random(count)) / side
+            self.v = (k // side + rng.random(count)) / side
+        else:
+            self.u, self.v = rng.random(count), rng.random(count)
+        self.si.uv = mi.Point2f(self.u.astype(np.float32), self.v.astype(np.float32))
+        self.ang = rng.uniform(0, math.pi, count)
+
+    def footprints(self, minor):
+        """The derivative vectors of the footprints with this minor axis (texels)."""
+        major_len, minor_len = self.anisotropy * minor / self.size, minor / self.size
+        return (np.stack([major_len * np.cos(self.ang), major_len * np.sin(self.ang)], 1),
+                np.stack([-minor_len * np.sin(self.ang), minor_len * np.cos(self.ang)], 1))
+
+    def set_minor(self, minor):
+        import drjit as dr
+        import mitsuba as mi
+        d0, d1 = self.footprints(minor)
+        self.si.duv_dx = mi.Vector2f(d0[:, 0].astype(np.float32), d0[:, 1].astype(np.float32))
+        self.si.duv_dy = mi.Vector2f(d1[:, 0].astype(np.float32), d1[:, 1].astype(np.float32))
+        dr.eval(self.si)
+
+
+def _textures(texels, max_anisotropy):
+    """Mitsuba's bitmap and every filter of ours on the same texels (name → texture)."""
     import mitsuba as mi
-
-    import mitsuba_pbrt_tex as mpt
-    from .timing import measure
-
-    mi.set_variant(variant)
-    mpt.register()
-    rng = np.random.default_rng(seed)
-    texels = rng.random((size, size, 3), dtype=np.float32)
-    si = dr.zeros(mi.SurfaceInteraction3f, count)
-    if coherent:
-        # neighbouring lookups at neighbouring texels, as neighbouring pixels of a render: a
-        # raster of the texture, one lookup per cell, jittered within the cell
-        side = int(math.ceil(math.sqrt(count)))
-        k = np.arange(count)
-        u = (k % side + rng.random(count)) / side
-        v = (k // side + rng.random(count)) / side
-    else:
-        u, v = rng.random(count), rng.random(count)
-    si.uv = mi.Point2f(u.astype(np.float32), v.astype(np.float32))
-    ang = rng.uniform(0, math.pi, count)
-
-    def footprints(minor):
-        """The derivative vectors of 8:1 (``anisotropy``) footprints with this minor axis."""
-        major_len, minor_len = anisotropy * minor / size, minor / size
-        return (np.stack([major_len * np.cos(ang), major_len * np.sin(ang)], 1),
-                np.stack([-minor_len * np.sin(ang), minor_len * np.cos(ang)], 1))
-
-    def set_footprints(minor):
-        d0, d1 = footprints(minor)
-        si.duv_dx = mi.Vector2f(d0[:, 0].astype(np.float32), d0[:, 1].astype(np.float32))
-        si.duv_dy = mi.Vector2f(d1[:, 0].astype(np.float32), d1[:, 1].astype(np.float32))
-        dr.eval(si)
-
-    set_footprints(minor)
-
     textures = {'bitmap (bilinear)': mi.load_dict(
         {'type': 'bitmap', 'data': mi.TensorXf(texels), 'raw': True, 'filter_type': 'bilinear'})}
     for name, filt, prepare in (('point (level 0)', 'point', False),
@@ -89,13 +89,30 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
         if prepare:
             tex.prepare_differentials()
         textures[name] = tex
-    fns = {name: (lambda t=tex: t.eval(si)) for name, tex in textures.items()}
+    return textures
+
+
+def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant='llvm_ad_rgb',
+        max_anisotropy=8.0, seed=1, coherent=False, out=print, sweep=(3.0, 6.0, 12.0)):
+    import mitsuba as mi
+
+    import mitsuba_pbrt_tex as mpt
+    from .timing import measure
+
+    mi.set_variant(variant)
+    mpt.register()
+    rng = np.random.default_rng(seed)
+    texels = rng.random((size, size, 3), dtype=np.float32)
+    batch = _Batch(rng, size, count, anisotropy, coherent)
+    batch.set_minor(minor)
+    fns = {name: (lambda t=tex: t.eval(batch.si))
+           for name, tex in _textures(texels, max_anisotropy).items()}
     times, first = measure(fns, repeats)
     base = times['bitmap (bilinear)']
     order = 'coherent (raster order)' if coherent else 'random'
-    out(f'lookups: {count} per batch at {order} uv, {size}x{size} RGB float32, footprints {anisotropy:g}:1 '
-        f'(minor axis {minor:g} texels, random orientation), maxanisotropy {max_anisotropy:g}, '
-        f'variant {variant}, median of {repeats}')
+    out(f'lookups: {count} per batch at {order} uv, {size}x{size} RGB float32, footprints '
+        f'{anisotropy:g}:1 (minor axis {minor:g} texels, random orientation), maxanisotropy '
+        f'{max_anisotropy:g}, variant {variant}, median of {repeats}')
     out('| method | ms / batch | M lookups/s | vs bitmap | target | first call (compile) ms |')
     out('|---|---|---|---|---|---|')
     rows = []
@@ -107,40 +124,50 @@ def run(size=1024, count=1 << 20, anisotropy=8.0, minor=1.5, repeats=7, variant=
             f'{first[name] * 1e3:.0f} |')
         rows.append(dict(method=name, ms=t * 1e3, mlookups=count / t / 1e6, ratio=ratio,
                          target=target, first_ms=first[name] * 1e3))
-    if coherent:
-        return rows
+    if not coherent:
+        rows += _ewa_by_level(batch, fns, minor, sweep, max_anisotropy, repeats, out)
+    return rows
+
+
+def _ewa_by_level(batch, fns, minor, sweep, max_anisotropy, repeats, out):
+    """EWA's cache lines per lookup against bilinear's, and (``sweep``) EWA's time on the same
+    ellipses at coarser levels: the rows for those runs."""
+    from .timing import measure
+    size, count, anisotropy = batch.size, batch.count, batch.anisotropy
     sample = slice(0, min(count, 2000))
+    u, v = batch.u[sample], batch.v[sample]
 
     @functools.cache
-    def ewa_lines(minor):
-        d0, d1 = footprints(minor)
-        return cache_lines_ewa(size, u[sample], v[sample], d0[sample], d1[sample],
-                               max_anisotropy).mean()
+    def ewa_lines(m):
+        d0, d1 = batch.footprints(m)
+        return cache_lines_ewa(size, u, v, d0[sample], d1[sample], max_anisotropy).mean()
 
-    bilinear_lines = cache_lines_bilinear(size, u[sample], v[sample]).mean()
+    bilinear_lines = cache_lines_bilinear(size, u, v).mean()
     lines = ewa_lines(minor)
-    out(f'cache lines read per lookup (mean of {len(u[sample])}): bilinear '
+    out(f'cache lines read per lookup (mean of {len(u)}): bilinear '
         f'{bilinear_lines:.1f}, EWA {lines:.1f} → at an equal cost per line '
         f'EWA could reach {bilinear_lines / lines:.3f}× bitmap')
-    if sweep:
-        out('EWA by the levels its footprints select (same ellipses in texels, smaller levels):')
-        out('| minor axis (level-0 texels) | levels blended | their size MB | cache lines / lookup '
-            '| bitmap ms | ewa, given order: ms | vs bitmap | ewa (sorted) ms | vs bitmap |')
-        out('|---|---|---|---|---|---|---|---|---|')
-        trio = {k: fns[k] for k in ('bitmap (bilinear)', GIVEN_ORDER, 'ewa')}
-        for m in (minor, *sweep):
-            set_footprints(m)
-            t, _ = measure(trio, repeats)
-            # pbrt's level: log2 of the minor axis in level-0 texels, after the anisotropy clamp
-            level = max(0, int(math.floor(math.log2(m * max(1.0, anisotropy / max_anisotropy)))))
-            mb = sum(16 * max(1, size >> lv) ** 2 for lv in (level, level + 1)) / 2 ** 20
-            tb, tg, ts = t['bitmap (bilinear)'], t[GIVEN_ORDER], t['ewa']
-            out(f'| {m:g} | {level}, {level + 1} | {mb:.2f} | {ewa_lines(m):.1f} | {tb * 1e3:.2f} '
-                f'| {tg * 1e3:.1f} | {tb / tg:.3f}× | {ts * 1e3:.1f} | {tb / ts:.3f}× |')
-            for name, tm in (('ewa, given order', tg), ('ewa', ts)):
-                rows.append(dict(method=f'{name}, minor {m:g}', ms=tm * 1e3,
-                                 mlookups=count / tm / 1e6, ratio=tb / tm, target=None,
-                                 first_ms=float('nan')))
+    rows = []
+    if not sweep:
+        return rows
+    out('EWA by the levels its footprints select (same ellipses in texels, smaller levels):')
+    out('| minor axis (level-0 texels) | levels blended | their size MB | cache lines / lookup '
+        '| bitmap ms | ewa, given order: ms | vs bitmap | ewa (sorted) ms | vs bitmap |')
+    out('|---|---|---|---|---|---|---|---|---|')
+    trio = {k: fns[k] for k in ('bitmap (bilinear)', GIVEN_ORDER, 'ewa')}
+    for m in (minor, *sweep):
+        batch.set_minor(m)
+        t, _ = measure(trio, repeats)
+        # pbrt's level: log2 of the minor axis in level-0 texels, after the anisotropy clamp
+        level = max(0, int(math.floor(math.log2(m * max(1.0, anisotropy / max_anisotropy)))))
+        mb = sum(16 * max(1, size >> lv) ** 2 for lv in (level, level + 1)) / 2 ** 20
+        tb, tg, ts = t['bitmap (bilinear)'], t[GIVEN_ORDER], t['ewa']
+        out(f'| {m:g} | {level}, {level + 1} | {mb:.2f} | {ewa_lines(m):.1f} | {tb * 1e3:.2f} '
+            f'| {tg * 1e3:.1f} | {tb / tg:.3f}× | {ts * 1e3:.1f} | {tb / ts:.3f}× |')
+        for name, tm in (('ewa, given order', tg), ('ewa', ts)):
+            rows.append(dict(method=f'{name}, minor {m:g}', ms=tm * 1e3,
+                             mlookups=count / tm / 1e6, ratio=tb / tm, target=None,
+                             first_ms=float('nan')))
     return rows
 
 

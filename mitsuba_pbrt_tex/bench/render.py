@@ -40,6 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..outputs import save_figure
+
 LUM = np.array([0.212671, 0.715160, 0.072169])
 
 
@@ -408,14 +410,10 @@ def charts(rows, out_dir):
             target.set_ylabel('RMSE vs reference (textured pixels)')
             target.grid(True, which='both', alpha=0.3)
             target.legend(fontsize=6)
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, f'chart_{scene}.png'), dpi=110)
-        plt.close(fig)
+        save_figure(fig, os.path.join(out_dir, f'chart_{scene}.png'), 110)
     for j in range(len(scenes), nrows * cols):
         axes[j // cols][j % cols].axis('off')
-    fig_all.tight_layout()
-    fig_all.savefig(os.path.join(out_dir, 'charts.png'), dpi=90)
-    plt.close(fig_all)
+    save_figure(fig_all, os.path.join(out_dir, 'charts.png'), 90)
 
 
 def main(argv=None) -> int:

@@ -30,8 +30,11 @@ import os
 import resource
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
+
+from ..outputs import save_figure
 
 VIEWS = ((0.12, 3.0), (0.35, 8.0), (0.9, 20.0))      # (camera height, look-down angle in degrees)
 
@@ -80,9 +83,22 @@ METHODS = (('bitmap + prb', 'bitmap', 'prb'), ('trilinear + pbrt_path', 'triline
            ('ewa + pbrt_path', 'ewa', 'pbrt_path'))
 
 
+@dataclass(frozen=True)
+class Settings:
+    """What ``demo inverse`` runs: Adam steps and their rate, the views' resolution, spp per
+    view and step, and the targets' spp."""
+    iterations: int = 60
+    res: int = 64
+    spp: int = 4
+    target_spp: int = 256
+    lr: float = 0.03
+
+
+KEY = 'plane.bsdf.reflectance.data'
+
+
 def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.03,
         variant='llvm_ad_rgb', log=print, freeze=False):
-    import drjit as dr
     import mitsuba as mi
 
     import mitsuba_pbrt_tex as mpt
@@ -90,71 +106,90 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
     mi.set_variant(variant)
     mpt.register()
     os.makedirs(out_dir, exist_ok=True)
+    cfg = Settings(iterations, res, spp, target_spp, lr)
     truth = true_texture()
-    key = 'plane.bsdf.reflectance.data'
-
     # ---- targets: the true texture, point-sampled, many samples (correct pixel averages)
     targets = []
     for view in VIEWS:
         scene = mi.load_dict(scene_dict(texture_dict('bilinear', truth), 'path', view, res))
         targets.append(mi.TensorXf(mi.render(scene, spp=target_spp, seed=99)))
-
-    def step(scene, target, seed):
-        """One view's share of an Adam step: render, loss, back-propagation (what dr.freeze
-        records with --freeze; parameter updates and opt.step() stay outside, as in Mitsuba's
-        frozen-optimisation tests)."""
-        params = mi.traverse(scene)
-        params.keep(key)
-        img = mi.render(scene, params, spp=spp, seed=seed)
-        loss = dr.mean(dr.square(img - target), axis=None)
-        dr.backward(loss)
-        return loss
-
-    def fit(label, kind, integrator, frozen):
-        init = np.full_like(truth, 0.5)
-        scenes = [mi.load_dict(scene_dict(texture_dict(kind, init), integrator, v, res))
-                  for v in VIEWS]
-        params = [mi.traverse(s) for s in scenes]
-        opt = mi.ad.Adam(lr=lr)
-        opt[key] = params[0][key]
-        for p in params:
-            p.update(opt)
-        fn = dr.freeze(step) if frozen else step
-        rows = []
-        t_start = time.perf_counter()
-        for it in range(iterations):
-            loss_total = 0.0
-            for k, (scene, target) in enumerate(zip(scenes, targets)):
-                loss = fn(scene, target, mi.UInt32(it * len(VIEWS) + k))
-                loss_total += float(np.array(loss).ravel()[0])
-            opt.step()
-            opt[key] = dr.clip(opt[key], 0.0, 1.0)
-            for p in params:
-                p.update(opt)
-            tex = np.array(params[0][key])
-            tex_rmse = float(np.sqrt(np.mean((tex - truth) ** 2)))
-            rows.append(dict(method=label, iteration=it, loss=loss_total / len(VIEWS),
-                             texture_rmse=tex_rmse, seconds=time.perf_counter() - t_start))
-            if it % 10 == 0 or it == iterations - 1:
-                log(f'{label:24s} it {it:3d}  image loss {rows[-1]["loss"]:.5f}  '
-                    f'texture RMSE {tex_rmse:.4f}  {rows[-1]["seconds"]:6.1f} s')
-        return rows, np.array(params[0][key])
-
     history, finals, frozen_rows = {}, {}, {}
     for label, kind, integrator in METHODS:
-        history[label], finals[label] = fit(label, kind, integrator, False)
+        history[label], finals[label] = _fit(cfg, label, kind, integrator, truth, targets,
+                                             False, log)
         if freeze:
-            frozen_rows[label], _ = fit(label + ' (frozen)', kind, integrator, True)
+            frozen_rows[label], _ = _fit(cfg, label + ' (frozen)', kind, integrator, truth,
+                                         targets, True, log)
+    summary = _report(cfg, history, frozen_rows, out_dir)
+    plots(history, truth, finals, np.array(targets[0]), out_dir)
+    for line in summary:
+        log(line)
+    # matplotlib's and Mitsuba's reference cycles can keep the last scenes (and their AD graph)
+    # alive until the next collection; release them now for whatever the caller does next
+    del targets
+    gc.collect()
+    return history, summary, frozen_rows
 
+
+def _step(scene, target, seed, spp):
+    """One view's share of an Adam step: render, loss, back-propagation (what dr.freeze
+    records with --freeze; parameter updates and opt.step() stay outside, as in Mitsuba's
+    frozen-optimisation tests)."""
+    import drjit as dr
+    import mitsuba as mi
+    params = mi.traverse(scene)
+    params.keep(KEY)
+    img = mi.render(scene, params, spp=spp, seed=seed)
+    loss = dr.mean(dr.square(img - target), axis=None)
+    dr.backward(loss)
+    return loss
+
+
+def _fit(cfg: Settings, label, kind, integrator, truth, targets, frozen, log):
+    """Recover the texture with one method: the history rows and the final texture."""
+    import drjit as dr
+    import mitsuba as mi
+    init = np.full_like(truth, 0.5)
+    scenes = [mi.load_dict(scene_dict(texture_dict(kind, init), integrator, v, cfg.res))
+              for v in VIEWS]
+    params = [mi.traverse(s) for s in scenes]
+    opt = mi.ad.Adam(lr=cfg.lr)
+    opt[KEY] = params[0][KEY]
+    for p in params:
+        p.update(opt)
+    fn = dr.freeze(_step) if frozen else _step
+    rows = []
+    t_start = time.perf_counter()
+    for it in range(cfg.iterations):
+        loss_total = 0.0
+        for k, (scene, target) in enumerate(zip(scenes, targets)):
+            loss = fn(scene, target, mi.UInt32(it * len(VIEWS) + k), cfg.spp)
+            loss_total += float(np.array(loss).ravel()[0])
+        opt.step()
+        opt[KEY] = dr.clip(opt[KEY], 0.0, 1.0)
+        for p in params:
+            p.update(opt)
+        tex = np.array(params[0][KEY])
+        tex_rmse = float(np.sqrt(np.mean((tex - truth) ** 2)))
+        rows.append(dict(method=label, iteration=it, loss=loss_total / len(VIEWS),
+                         texture_rmse=tex_rmse, seconds=time.perf_counter() - t_start))
+        if it % 10 == 0 or it == cfg.iterations - 1:
+            log(f'{label:24s} it {it:3d}  image loss {rows[-1]["loss"]:.5f}  '
+                f'texture RMSE {tex_rmse:.4f}  {rows[-1]["seconds"]:6.1f} s')
+    return rows, np.array(params[0][KEY])
+
+
+def _report(cfg: Settings, history, frozen_rows, out_dir) -> list:
+    """Write inverse.csv and summary.md; the summary's lines."""
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     with open(os.path.join(out_dir, 'inverse.csv'), 'w', newline='') as f:
         w = csv.DictWriter(f, fieldnames=list(history[METHODS[0][0]][0].keys()))
         w.writeheader()
         for rows in history.values():
             w.writerows(rows)
-    summary = [f'demo inverse: {iterations} Adam steps (lr {lr}), {len(VIEWS)} views at '
-               f'{res}×{res}, {spp} spp per view and step, targets {target_spp} spp; '
-               f'peak resident memory {peak_mib:.0f} MiB']
+    summary = [f'demo inverse: {cfg.iterations} Adam steps (lr {cfg.lr}), {len(VIEWS)} views at '
+               f'{cfg.res}×{cfg.res}, {cfg.spp} spp per view and step, targets '
+               f'{cfg.target_spp} spp; peak resident memory {peak_mib:.0f} MiB']
     for label, rows in history.items():
         per_it = rows[-1]['seconds'] / len(rows)
         line = (f'- {label}: final texture RMSE {rows[-1]["texture_rmse"]:.4f}, image loss '
@@ -169,14 +204,7 @@ def run(out_dir='demo-out', iterations=60, res=64, spp=4, target_spp=256, lr=0.0
         summary.append(line)
     with open(os.path.join(out_dir, 'summary.md'), 'w') as f:
         f.write('\n'.join(summary) + '\n')
-    plots(history, truth, finals, np.array(targets[0]), out_dir)
-    for line in summary:
-        log(line)
-    # matplotlib's and Mitsuba's reference cycles can keep the last scenes (and their AD graph)
-    # alive until the next collection; release them now for whatever the caller does next
-    del targets
-    gc.collect()
-    return history, summary, frozen_rows
+    return summary
 
 
 def plots(history, truth, finals, target_view, out_dir):
@@ -199,9 +227,7 @@ def plots(history, truth, finals, target_view, out_dir):
         ax.set_xlabel('Adam step')
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, 'inverse.png'), dpi=100)
-    plt.close(fig)
+    save_figure(fig, os.path.join(out_dir, 'inverse.png'), 100)
     panels = [('true texture', truth), ('initial', np.full_like(truth, 0.5))]
     panels += [(f'recovered: {k}', v) for k, v in finals.items()]
     fig, axes = plt.subplots(1, len(panels) + 1, figsize=(3 * (len(panels) + 1), 3.2))
@@ -212,9 +238,7 @@ def plots(history, truth, finals, target_view, out_dir):
     axes[-1].imshow(tonemap(target_view))
     axes[-1].set_title('target view (3°)', fontsize=8)
     axes[-1].axis('off')
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, 'textures.png'), dpi=100)
-    plt.close(fig)
+    save_figure(fig, os.path.join(out_dir, 'textures.png'), 100)
 
 
 def main(argv=None) -> int:
