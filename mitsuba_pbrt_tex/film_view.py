@@ -80,6 +80,20 @@ class Lattice:
             total += self._f(phi + (m - 0.5))
         return total * self.norm
 
+    def filter_inverse(self, u):
+        """The offset ``x ∈ [-radius, radius]`` at which the filter's own CDF is ``u`` (a film
+        offset drawn from ``f``, per axis): Newton from the Gaussian's inverse."""
+        lo = self._F_scalar(-self.radius)
+        total = self._F_scalar(self.radius) - lo
+        target = lo + mi.Float(u) * total
+        x = dr.clip(self.sigma * math.sqrt(2.0) * dr.erfinv(dr.clip(2 * mi.Float(u) - 1,
+                                                                   -0.999999, 0.999999)),
+                    -self.radius, self.radius)
+        for _ in range(5):
+            step = (self._F(x) - target) / dr.maximum(self._f(x), 1e-6)
+            x = dr.clip(x - step, -self.radius, self.radius)
+        return x
+
     def inverse(self, psi):
         phi = mi.Float(psi)
         for _ in range(4):              # Newton from the identity (G is within 1.5% of 1)
@@ -168,6 +182,12 @@ class FilterPixels:
         self.phi = mi.Point2f(phi[0], phi[1])
         self.m = mi.Point2f(m[0], m[1])
         dr.make_opaque(self.m, self.phi, self.rho_jit)
+
+    def filter_offset(self, u):
+        """A film offset (Vector2f, pixels) from the pixel centre drawn from the filter
+        ``f(a)·f(b)`` by the uniform 2D sample ``u``, independently of the render's shared
+        offsets (silhouette samples)."""
+        return mi.Vector2f(self.lattice.filter_inverse(u.x), self.lattice.filter_inverse(u.y))
 
     def film_positions(self, pixel, index):
         """Film positions (crop pixel coordinates) of sample ``index`` (UInt32) of ``pixel``

@@ -39,8 +39,11 @@ kernel is the filter's own, warped exactly by the perspective:
 * The support is the disc of the filter's radius (the separable filter's square corners, where
   ``f(a)·f(b) < 3.4e-4·f(0)²``, are left out).
 * Kernels whose larger deviation exceeds :data:`MAX_SIGMA` lattice units go to a coarser lattice
-  (bounded cost, blurred along the shorter axis, as EWA's anisotropy limit); kernels wider than
-  the whole image at its 1×1 level give the image mean.
+  (bounded cost) and are widened there until the smaller deviation spans
+  :data:`MIN_SIGMA_UNITS` lattice unit — blurred along the shorter axis, as EWA's anisotropy limit, rather than sampled
+  by a few lattice points (which aliased: single pixels near the horizon of the bench's grazing
+  plane returned a check's colour instead of its neighbourhood's mean); kernels wider than the
+  whole image at its 1×1 level give the image mean.
 
 The filter is separable in the film plane, ``f(a)·f(b)``, so a kernel sheared by the Jacobian is
 evaluated as Mitsuba's film does — a product of two 1D filters — after the second-moment
@@ -61,6 +64,10 @@ MIN_LATTICE = -4
 #: A kernel's smaller standard deviation spans at least this many lattice units (where the
 #: lattice can be fine enough).
 LATTICE_SIGMA = 2.0
+#: A kernel's smaller standard deviation spans at least this many lattice units where the
+#: lattice is coarsened for its larger one (it is widened to it: one unit samples a Gaussian
+#: well; fewer aliased).
+MIN_SIGMA_UNITS = 1.0
 #: A kernel's larger standard deviation spans at most this many lattice units.
 MAX_SIGMA = 16.0
 #: Loop extent bound in lattice units (non-finite or huge footprints cannot loop forever).
@@ -155,9 +162,9 @@ def _lattice(mip, st, d0, d1, g, h, kernel, active) -> _Lattice:
     ok = active & dr.isfinite(sig_max) & (sig_min > 0) & dr.isfinite(g) & dr.isfinite(h)
     sig_min = dr.select(ok, sig_min, 1.0)
     sig_max = dr.select(ok, sig_max, 1.0)
-    lat = dr.floor(dr.log2(sig_min * (1.0 / LATTICE_SIGMA)))
-    lat = dr.maximum(lat, dr.ceil(dr.log2(sig_max * (1.0 / MAX_SIGMA))))
-    lat = dr.clip(lat, MIN_LATTICE, last)
+    by_min = dr.floor(dr.log2(sig_min * (1.0 / LATTICE_SIGMA)))
+    by_max = dr.ceil(dr.log2(sig_max * (1.0 / MAX_SIGMA)))
+    lat = dr.clip(dr.maximum(by_min, by_max), MIN_LATTICE, last)
     fine = lat < 0
     spacing = dr.exp2(lat)                                  # level-0 texels per lattice unit
     view = mip.view(mi.UInt32(dr.maximum(lat, 0))) if last > 0 else mip.view(0)
@@ -174,6 +181,13 @@ def _lattice(mip, st, d0, d1, g, h, kernel, active) -> _Lattice:
     l10, l11 = d0.y * sy, d1.y * sy
     # ---- second-moment correction (lattice units²), in the film plane: σ²I + δ·J⁻¹J⁻ᵀ ----------
     delta = dr.select(lat <= 0, 1.0 / 6.0, (3 * dr.exp2(-2 * lat) - 1) * (1.0 / 12.0))
+    # a lattice coarsened for the larger deviation (MAX_SIGMA) may sample the smaller one with
+    # under one unit — a few points on a line, aliasing: widen it to one unit (a blur along the
+    # shorter axis, as EWA's anisotropy limit)
+    sig_min_lat = sig_min / spacing
+    widen = (by_max > by_min) & (lat > MIN_LATTICE)
+    delta = delta + dr.select(widen, dr.maximum(MIN_SIGMA_UNITS ** 2 - sig_min_lat * sig_min_lat,
+                                                0), 0)
     ma, mb, mc = _corrected_shape(l00, l01, l10, l11, sigma, delta)
     # ---- loop bounds: the kernel's ellipse in lattice units, widened for the perspective -----
     ba = sigma * sigma * (l00 * l00 + l01 * l01) + dr.maximum(delta, 0)

@@ -61,6 +61,9 @@ from .raydiff import film_ray, plane_hit, uv_partials
 
 #: A ray starts at the camera when its origin is within this fraction of the hit distance.
 CAMERA_TOLERANCE = 1e-4
+#: The Gaussian kernel holds where the perspective terms keep 1 + a·g + b·h above 1 - this over
+#: the filter's support.
+PERSPECTIVE_LIMIT = 0.5
 
 
 @dataclass
@@ -154,7 +157,7 @@ def pixel_footprint(sensor, si, pixels=None) -> PixelFootprint:
           & dr.isfinite(g) & dr.isfinite(h))
     if pixels is not None:
         # the filter's support reaches `radius` pixels: 1 + a·g + b·h stays above 1/2 there
-        ok &= (dr.abs(g) + dr.abs(h)) * pixels.radius < 0.5
+        ok &= (dr.abs(g) + dr.abs(h)) * pixels.radius < PERSPECTIVE_LIMIT
     return PixelFootprint(uv_c, d0, d1, g, h, p_c, dp0, dp1, ok)
 
 

@@ -3,10 +3,14 @@
 With pixel footprints (``footprint="pixel"``, box film) every sample of a fully covered pixel
 sees the pixel's texture average, so a 1-spp image is converged there; what is left is where a
 pixel crosses a silhouette or the horizon, and the texture's pixel average no longer describes
-what the pixel sees. Those pixels are found by five camera rays per lane — the pixel's centre and
-its four corners — that disagree about the surface they hit (:func:`edge_pixels`); their lanes,
-compacted, trace ``silhouette_spp`` more paths through random points of their pixel
-(:func:`extra_paths`), which the integrator averages with the sample's own.
+what the pixel sees. Those pixels are found by five camera rays per lane that disagree about the
+surface they hit (:func:`edge_pixels`) — the pixel's centre and its four corners with a box
+film; with a Gaussian film (whose pixel sees ±2 pixels) its centre and the corners of the square
+±1.5 pixels around it (3 standard deviations) —; their lanes, compacted, trace ``silhouette_spp``
+more paths (:func:`extra_paths`) through random points of their pixel (box film) or film offsets
+drawn from the filter around its centre (Gaussian film: each an independent point estimate of
+the pixel's filtered value, unlike the render's shared offsets), which the integrator averages
+with the sample's own.
 """
 
 from __future__ import annotations
@@ -16,8 +20,11 @@ import mitsuba as mi
 
 from .raydiff import film_ray
 
-#: the pixel's centre, then its corners (offsets from the pixel's corner, in pixels)
+#: box film: the pixel's centre, then its corners (offsets from the pixel's corner, in pixels)
 PROBES = ((0.5, 0.5), (0, 0), (1, 0), (0, 1), (1, 1))
+#: Gaussian film: the pixel's centre, then the corners of the square of 3 standard deviations
+#: (Mitsuba's gaussian: σ = 0.5 pixel) around it (offsets from the pixel's centre)
+FILTER_PROBES = ((0, 0), (-1.5, -1.5), (1.5, -1.5), (-1.5, 1.5), (1.5, 1.5))
 #: normals more than ~25° apart count as different surfaces
 SAME_NORMAL = 0.9
 
@@ -29,13 +36,13 @@ def _ray(sensor, pixel_pos, offset, active):
     return ray
 
 
-def edge_pixels(scene, sensor, pixel_pos, active):
-    """Lanes whose pixel (full-film coordinates of its corner, ``pixel_pos``) has centre and
-    corner rays that disagree about the surface they hit: a miss, another shape, or normals
-    more than ~25° apart."""
+def edge_pixels(scene, sensor, pixel_pos, active, probes=PROBES):
+    """Lanes whose pixel (full-film coordinates of its corner, ``pixel_pos``; of its centre with
+    ``FILTER_PROBES``) has probe rays that disagree about the surface they hit: a miss, another
+    shape, or normals more than ~25° apart."""
     pixel_pos = mi.Vector2f(pixel_pos)
     hits = []
-    for offset in PROBES:
+    for offset in probes:
         ray = _ray(sensor, pixel_pos, mi.Vector2f(*offset), active)
         si = scene.ray_intersect(mi.Ray3f(ray), mi.RayFlags.Minimal, True, active)
         hits.append((si.is_valid(), dr.reinterpret_array(mi.UInt32, si.shape),
@@ -47,9 +54,10 @@ def edge_pixels(scene, sensor, pixel_pos, active):
     return active & edge
 
 
-def extra_paths(trace, sensor, sampler, pixel_pos, edge, count: int):
+def extra_paths(trace, sensor, sampler, pixel_pos, edge, count: int, offset=None):
     """Sum of ``count`` more paths in each ``edge`` lane's pixel (0 elsewhere); ``trace(sampler,
-    ray, active)`` gives a path's radiance. The edge lanes are compacted first — a few percent
+    ray, active)`` gives a path's radiance, ``offset(u)`` the film offset from ``pixel_pos`` of
+    a uniform 2D sample (default: ``u`` itself, a point of the pixel whose corner it is). The edge lanes are compacted first — a few percent
     of the lanes, which a masked loop over all lanes would carry along — and draw from a sampler
     of their own, seeded from this one. (Compaction needs this to run outside a symbolic scope:
     Mitsuba's ``render`` methods call ``sample()`` there, in symbolic and wavefront mode and
@@ -63,19 +71,19 @@ def extra_paths(trace, sensor, sampler, pixel_pos, edge, count: int):
     sub = sampler.fork()
     sub.seed(seed, n)
     acc = _paths(trace, sensor, sub, dr.gather(mi.Vector2f, mi.Vector2f(pixel_pos), index),
-                 dr.full(mi.Bool, True, n), count)
+                 dr.full(mi.Bool, True, n), count, offset or (lambda u: u))
     dr.scatter(total, acc, index)
     return total
 
 
 @dr.syntax
-def _paths(trace, sensor, sampler, pixel_pos, edge, count):
-    """Sum of ``count`` paths through random points of each lane's pixel ``pixel_pos``."""
+def _paths(trace, sensor, sampler, pixel_pos, edge, count, offset):
+    """Sum of ``count`` paths through film positions ``pixel_pos + offset(u)`` of each lane."""
     k = mi.UInt32(0)
     acc = mi.Spectrum(0)
     while dr.hint(edge & (k < count), label='pbrt_path (silhouettes)',
                   exclude=[sensor, pixel_pos, edge]):              # read only
-        ray = _ray(sensor, pixel_pos, sampler.next_2d(), edge)
+        ray = _ray(sensor, pixel_pos, offset(sampler.next_2d()), edge)
         acc += trace(sampler, ray, edge)
         k += 1
     return acc

@@ -14,7 +14,7 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
 | footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` or `gaussian` film filter) | no |
-| silhouette_spp | integer | 0 | `footprint="pixel"`: this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; primal renders with a `box` film filter only | no |
+| silhouette_spp | integer | 0 | `footprint="pixel"`: this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels); primal renders only | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (uv partials at the first hit; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
@@ -198,10 +198,6 @@ class Plugin:
         film = sensor.film()
         if film.rfilter().class_name() == 'BoxFilter':
             return sensor
-        if self.silhouette_spp:
-            raise PluginError(f'{self.NAME}: parameter "silhouette_spp": value '
-                              f'{self.silhouette_spp} needs the film filter "box", got '
-                              f'{film.rfilter().class_name()}; use 0 with "gaussian"')
         return film_view.PixelSensor(RenderScope(sensor, film_view.FilterPixels(film, seed)))
 
     def sample_rays(self, scene, sensor, sampler):
@@ -271,14 +267,26 @@ class Plugin:
 
     def _with_silhouette_paths(self, scene, sampler, out, scope, inputs, active):
         """``out`` with ``silhouette_spp`` more paths averaged in, in the pixels that cross a
-        silhouette (:mod:`mitsuba_pbrt_tex.silhouettes`)."""
-        def trace(sub, ray, edge):
-            return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge, inputs,
-                              scope).L
+        silhouette (:mod:`mitsuba_pbrt_tex.silhouettes`). Box film: through random points of
+        the pixel, whose textures centre on it; Gaussian film: through film offsets drawn from
+        the filter, each a point estimate of the pixel's filtered value (their hits are not at
+        the render's shared offsets, so their textures keep the sample's footprint)."""
+        gaussian = scope.pixels is not None
+        plain = RenderScope(scope.sensor)
 
-        edge = silhouettes.edge_pixels(scene, scope.sensor, scope.positions, active)
+        def trace(sub, ray, edge):
+            if not gaussian:
+                return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge, inputs,
+                                  scope).L
+            with published(None):
+                return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge, inputs,
+                                  plain).L
+
+        probes = silhouettes.FILTER_PROBES if gaussian else silhouettes.PROBES
+        edge = silhouettes.edge_pixels(scene, scope.sensor, scope.positions, active, probes)
         acc = silhouettes.extra_paths(trace, scope.sensor, sampler, scope.positions, edge,
-                                      self.silhouette_spp)
+                                      self.silhouette_spp,
+                                      scope.pixels.filter_offset if gaussian else None)
         L = dr.select(edge, (out.L + acc) * (1.0 / (self.silhouette_spp + 1)), out.L)
         return out._replace(L=L, state=L)
 

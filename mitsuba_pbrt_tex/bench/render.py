@@ -114,7 +114,10 @@ def _gaussian_methods(image, tiles, extra=None):
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear'}, True),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True),
             Method('pbrt_imagemap box, footprint pixel',
-                   {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint')]
+                   {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'),
+            Method('pbrt_imagemap box, footprint pixel, silhouette_spp 16',
+                   {**common, 'filter': 'box', 'footprint': 'pixel', 'silhouette_spp': '16'},
+                   True, 'footprint')]
     return builtin, ours
 
 
