@@ -4,7 +4,8 @@
     python tools/mitsuba_suite.py --mitsuba-src MI3 --mitsuba-data DATA [options]
 
 ``MI3`` is a Mitsuba 3.9.1 source tree (only ``src/conftest.py``,
-``src/render/tests/test_renders.py`` and ``src/textures/tests/test_bitmap.py`` are read),
+``src/render/tests/test_renders.py``, ``src/textures/tests/test_bitmap.py`` and
+``src/integrators/tests/test_ptracer.py`` are read),
 ``DATA`` a checkout of mitsuba-data (the commit Mitsuba 3.9.1 pins as its
 ``resources/data`` submodule). Neither is changed, and nothing of either is part of this
 project: the harness builds a Mitsuba-like tree in a temporary folder at run time,
@@ -13,6 +14,7 @@ project: the harness builds a Mitsuba-like tree in a temporary folder at run tim
     ROOT/src/conftest.py                    Mitsuba's, as it is
     ROOT/src/render/tests/test_renders.py   Mitsuba's, as it is
     ROOT/src/textures/tests/test_bitmap.py  Mitsuba's, as it is
+    ROOT/src/integrators/tests/test_ptracer.py  Mitsuba's, as it is
     ROOT/resources/data/...                 DATA: XML files copied with every
                                             <texture type="bitmap"> made type="pbrt_imagemap",
                                             everything else linked
@@ -22,7 +24,7 @@ runs the same tests unmodified, as the control) and integrator (``--integrators`
 
 * ``scene``: test_renders.py's own configurations (the scene's integrator under its 4 JIT flag
   settings, plus Mitsuba's extra integrators for it: prb and prb_projective for path,
-  direct_projective for direct), and test_bitmap.py;
+  direct_projective for direct), test_bitmap.py and test_ptracer.py;
 * ``pbrt_path``: test_renders.py's path configurations, with the test's
   ``mi.load_file(..., integrator='path')`` given ``'pbrt_path'`` instead.
 
@@ -36,7 +38,8 @@ also the pytest plugin, loaded with ``-p``):
   test in a mono run, or a ``scalar_rgb`` one, is reported as skipped);
 * ``find_resource`` (test_renders.py's way to its scenes) looks in ROOT;
 * in the test modules only, ``mi.load_dict`` gets ``"type": "bitmap"`` replaced (test_bitmap.py
-  builds its textures from dicts) and ``mi.load_file`` the integrator (``pbrt_path`` runs).
+  and test_ptracer.py build their textures from dicts) and ``mi.load_file`` the integrator
+  (``pbrt_path`` runs).
 
 Results are collected per test item, summarised per scene/test, variant, texture and
 integrator, and written as JSON (``--json``). ``--compare`` instead renders every selected scene
@@ -65,6 +68,7 @@ CONFIG_ENV = 'MITSUBA_PBRT_TEX_SUITE_CONFIG'
 TEST_FILES = {
     'renders': 'src/render/tests/test_renders.py',
     'bitmap': 'src/textures/tests/test_bitmap.py',
+    'ptracer': 'src/integrators/tests/test_ptracer.py',
 }
 MITSUBA_CONFTEST = 'src/conftest.py'
 SCENE_DIR = os.path.join('tests', 'scenes')
@@ -432,7 +436,8 @@ def main(argv=None):
                     help='comma-separated; "bitmap" runs the unmodified tests (the control)')
     ap.add_argument('--integrators', default='scene,pbrt_path',
                     help='"scene": the tests\' own configurations; "pbrt_path": path replaced')
-    ap.add_argument('--tests', default='renders,bitmap', help='renders, bitmap or both')
+    ap.add_argument('--tests', default='renders,bitmap,ptracer',
+                    help='comma-separated: renders, bitmap, ptracer')
     ap.add_argument('--scenes', default=None,
                     help='comma-separated scene paths under tests/scenes (default: every scene '
                          'that uses bitmap)')
