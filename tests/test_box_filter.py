@@ -22,6 +22,7 @@ import reference_mipmap as ref
 from conftest import A, assert_texel_gradients_match_fd, make_si
 
 MAX_BANDS = 16         # documented in mitsuba_pbrt_tex.box: the level rule the test re-derives
+MAX_PERIMETER = 256
 WRAPS = ['repeat', 'mirror', 'clamp', 'black']
 
 
@@ -46,10 +47,16 @@ def footprints(rng, n, major_texels, ratios, res):
 
 
 def expected_level(img_shape, d0, d1, n_levels):
+    """The documented rule: the finest level at which the footprint's short side (area /
+    longest side) is at most MAX_BANDS texels and its Manhattan perimeter at most MAX_PERIMETER
+    texels (level-0 texels halve per level)."""
     h, w = img_shape
-    ex = (abs(d0[0]) + abs(d1[0])) * w
-    ey = (abs(d0[1]) + abs(d1[1])) * h
-    return int(np.clip(math.ceil(math.log2(min(ex, ey) / MAX_BANDS)), 0, n_levels - 1))
+    a, b = np.array([d0[0] * w, d0[1] * h]), np.array([d1[0] * w, d1[1] * h])
+    area = abs(a[0] * b[1] - a[1] * b[0])
+    short = area / max(np.linalg.norm(a), np.linalg.norm(b))
+    perimeter = 2 * (np.abs(a).sum() + np.abs(b).sum())
+    want = max(math.ceil(math.log2(short / MAX_BANDS)), math.ceil(math.log2(perimeter / MAX_PERIMETER)))
+    return int(np.clip(want, 0, n_levels - 1))
 
 
 @pytest.mark.parametrize('wrap', WRAPS)
