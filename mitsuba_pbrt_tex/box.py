@@ -6,7 +6,8 @@ filter returns the area average over it of the bilinear reconstruction of one py
 *exactly* (to float32 rounding), at any orientation and anisotropy, also under magnification (no
 minimum width as EWA's "+1 texel²"; a footprint smaller than a texel averages the bilinear
 surface over that small area). Everything is float32 and reads only the pyramid's buffer: no
-table beyond the pyramid (:func:`build_box_tables` returns an empty record).
+table beyond the pyramid (:func:`build_box_tables` returns aliases of its buffer, see
+:class:`BoxTables`).
 
 How (per lane, at one level, in texel coordinates with texel centres at integers, relative to an
 integer origin next to the footprint's centre):
@@ -25,13 +26,16 @@ integer origin next to the footprint's centre):
 * A chain is walked cell by cell (a cell: between two knots — texel centres — of a band): an
   iteration goes to the next knot, band boundary or corner. On the piece it crossed, ``Q`` grows
   by a quadratic in x (the row is linear between two knots), x and τ are linear in y, so the
-  piece's own contribution is a cubic in y, integrated exactly by two-point Gauss–Legendre; what
-  ``Q`` gained on it counts for the rest of the row's use by the chain, a closed form (the row's
-  tent weight integrated up to where the chain leaves it). A chord is the integral of the row's
-  knot "hats" between two x, a closed form per knot, four knots per iteration.
-* So every iteration adds ``weights · texels`` for the four texels it reads (a 2×2 block, or four
-  knots of a chord) and carries no texel value: the loop is differentiable by Dr.Jit's
-  sum-style reverse mode (gradients reach the pyramid buffer exactly; the weights are geometry).
+  piece's own contribution is a cubic in y, integrated in closed form; what ``Q`` gained on it
+  counts for the rest of the row's use by the chain, also a closed form (the row's tent weight
+  integrated up to where the chain leaves it). Both are weights on the four texels of the cell;
+  each texel of that 2×2 block collects its weight while the walk stays next to it and is read
+  once, when it leaves the block (two texels per knot or band crossed).
+* The chords, in a second loop: the integral of the row's knot "hats" between two x, a closed
+  form per knot, four knots per iteration.
+* So every iteration adds ``weights · texels`` for the texels it reads and carries no texel
+  value: both loops are differentiable by Dr.Jit's sum-style reverse mode and by its forward
+  mode (gradients reach the pyramid buffer exactly; the weights are geometry).
 * A footprint inside one cell between four texel centres (magnification) needs no loop: the
   average of the bilinear polynomial over a parallelogram is its value at the centre plus the
   twist term ``f_xy·(e0x·e0y + e1x·e1y)/12``.
@@ -76,30 +80,46 @@ MIN_AREA = 1e-8
 MAX_STEPS = 16384
 BOX_WRAPS = ('repeat', 'mirror', 'clamp', 'black')
 _GL = 0.5 / math.sqrt(3.0)              # two-point Gauss–Legendre nodes on [0, 1]: 1/2 ∓ _GL
-_WALK, _CHORD = 0, 1
 
 
 class BoxTables:
-    """What the box filter needs besides the pyramid, for one wrap mode: nothing (it reads the
-    pyramid's texels only); kept as the record :func:`build_box_tables` returns and the filter
-    checks (wrap mode, source pyramid). A Dr.Jit struct with no traversed field."""
+    """What the box filter reads besides the pyramid, for one wrap mode: no table — the two
+    walks read the pyramid's texels through ``walk`` and ``chords``, each the pyramid's buffer
+    (the same memory) or, when it carries gradients, an AD variable of its own with an edge from
+    it. Dr.Jit's forward mode through a loop follows every edge out of the variables the loop
+    reads; a buffer also read elsewhere (the other loop, the closed forms, other filters on the
+    pyramid) would take it onto edges outside the loop's scope, an error. A Dr.Jit struct
+    (``walk`` and ``chords`` are traversed); made by :func:`build_box_tables`."""
 
-    DRJIT_STRUCT = {}
+    DRJIT_STRUCT = {'walk': object, 'chords': object}
 
-    def __init__(self, wrap: str = 'repeat', channels: int = 1, pyramid=None):
+    def __init__(self, walk=None, chords=None, wrap: str = 'repeat', channels: int = 1,
+                 pyramid=None):
+        self.walk = walk
+        self.chords = chords
         self.wrap = wrap
         self.channels = channels
-        self.pyramid = pyramid          # the pyramid it was made for
+        self.pyramid = pyramid          # the pyramid they alias
 
     def nbytes(self) -> int:
-        return 0
+        return 0                        # aliases of the pyramid's buffer
+
+
+def _alias(buffer):
+    """``buffer`` itself, or with gradients a new AD node for the same JIT variable."""
+    if not dr.grad_enabled(buffer):
+        return buffer
+    return dr.replace_grad(dr.detach(buffer), buffer * 1.0)
 
 
 def build_box_tables(pyramid, wrap: str) -> BoxTables:
-    """The box filter's record for ``pyramid`` (which must hold every level) and ``wrap``."""
+    """The box filter's record for ``pyramid`` (which must hold every level) and ``wrap``: a
+    pure function of the pyramid (gradients on its buffer reach the aliases). Call it where the
+    pyramid is built (not inside a symbolic loop or call: an AD alias cannot be made there)."""
     if wrap not in BOX_WRAPS:
         raise ValueError(f'box filter: unsupported wrap mode "{wrap}"')
-    return BoxTables(wrap, pyramid.channels, pyramid)
+    return BoxTables(_alias(pyramid.buffer), _alias(pyramid.buffer), wrap, pyramid.channels,
+                     pyramid)
 
 
 # ------------------------------------------------------------------------------------ level
@@ -145,6 +165,11 @@ class _Texels:
         if mask is not None:
             return mi.UInt32(mi.Int32(v) & mask), mi.Bool(True)
         return mi.UInt32(wrap_1d(v, n, self.wrap, inv_n)), mi.Bool(True)
+
+    def reading(self, buffer) -> '_Texels':
+        """The same texels read through ``buffer`` (an alias of the pyramid's buffer)."""
+        return _Texels(self.off, self.iw, self.w, self.h, self.inv_w, self.inv_h, self.mask,
+                       self.wrap, buffer, self.rgb)
 
     def row(self, y):
         """(first index of row y, validity)."""
@@ -286,14 +311,14 @@ class _Edges:
 
 def _omega_lo(z, zT):
     """∫ (1 - t) dt from z to min(1, zT): the lower row's remaining tent weight in its band."""
-    e = dr.minimum(zT, 1.0)
+    e = dr.clip(zT, 0.0, 1.0)
     return (e - 0.5 * e * e) - (z - 0.5 * z * z)
 
 
 def _omega_hi(z, zT):
     """The upper row's remaining tent weight: ∫ t dt from z to min(1, zT), plus ∫ (2 - t) dt
     from 1 to min(2, zT) (the band above, where it is the lower row)."""
-    e = dr.minimum(zT, 1.0)
+    e = dr.clip(zT, 0.0, 1.0)
     e2 = dr.clip(zT, 1.0, 2.0)
     return 0.5 * (e * e - z * z) + (2 * e2 - 0.5 * e2 * e2 - 1.5)
 
@@ -301,7 +326,7 @@ def _omega_hi(z, zT):
 def _hat_cdf(z):
     """∫ (1 - |t|) dt from -1 to z (clamped to [-1, 1])."""
     z = dr.clip(z, -1.0, 1.0)
-    return dr.select(z <= 0, 0.5 * (1 + z) * (1 + z), 1 - 0.5 * (1 - z) * (1 - z))
+    return dr.fma(z, dr.fma(dr.abs(z), -0.5, 1.0), 0.5)
 
 
 @dataclass
@@ -338,38 +363,35 @@ def _next_event(start, d, inv, s, i, j) -> _Step:
 
 def _piece_weights(x, y, x1, y1, i, j, zT):
     """Weights of texels (i, j), (i+1, j), (i, j+1), (i+1, j+1) for the walk's piece from
-    (x, y) to (x1, y1) inside cell (i, j): its own ∫ F dy (two Gauss points) plus what Q gained
-    on it times the rows' remaining tent weights."""
-    z0, z1 = y - j, y1 - j
-    half = 0.5 * (z1 - z0)
-    out = [0.0, 0.0, 0.0, 0.0]
-    for node in (0.5 - _GL, 0.5 + _GL):
-        xg = dr.fma(node, x1 - x, x)
-        zg = dr.fma(node, z1 - z0, z0)
-        dq = xg - x                                    # Q gained: dq·lerp(v_i, v_i+1, mu)
-        mu = 0.5 * (xg + x) - i
-        b = dq * mu
-        a = dq - b
-        lo, hi = half * (1 - zg), half * zg
-        out = [out[0] + lo * a, out[1] + lo * b, out[2] + hi * a, out[3] + hi * b]
-    dq = x1 - x
-    b = dq * (0.5 * (x1 + x) - i)
-    a = dq - b
-    olo, ohi = _omega_lo(z1, zT), _omega_hi(z1, zT)
-    return [out[0] + a * olo, out[1] + b * olo, out[2] + a * ohi, out[3] + b * ohi]
+    (x, y) to (x1, y1) inside cell (i, j): its own ∫ F dy plus what Q gained on it times the
+    rows' remaining tent weights. With t ∈ [0, 1] along the piece, Q gains D·t·(v_i + (u0 +
+    D·t/2)·(v_i+1 - v_i)) (D = x1 - x, u0 = x - i) and the rows weigh (1 - z), z, z = z0 + Δz·t:
+    the integrals of those products over t in closed form."""
+    D, u0 = x1 - x, x - i
+    z0, dz = y - j, y1 - y
+    b1, b2 = D * u0, 0.5 * D * D                      # v_i+1's share: b1·t + b2·t²
+    sb = 0.5 * b1 + b2 * (1 / 3)                      # ∫ share dt
+    tb = b1 * (1 / 3) + 0.25 * b2                     # ∫ t·share dt
+    sd, td = 0.5 * D, D * (1 / 3)                     # the same for the whole gain D·t
+    lo_b = dz * dr.fma(1 - z0, sb, -dz * tb)          # lower row: weight 1 - z
+    lo_d = dz * dr.fma(1 - z0, sd, -dz * td)
+    hi_b = dz * sb - lo_b                             # upper row: weight z = 1 - (1 - z)
+    hi_d = dz * sd - lo_d
+    gain_b = b1 + b2                                  # at the piece's end (t = 1)
+    gain_a = D - gain_b
+    olo, ohi = _omega_lo(z0 + dz, zT), _omega_hi(z0 + dz, zT)
+    return [dr.fma(gain_a, olo, lo_d - lo_b), dr.fma(gain_b, olo, lo_b),
+            dr.fma(gain_a, ohi, hi_d - hi_b), dr.fma(gain_b, ohi, hi_b)]
 
 
-def _chord_weights(xa, xb, k, omega):
-    """Weights of knots k … k+3 of a chord ∫ from xa to xb, times the row's tent weight."""
-    return [omega * (_hat_cdf(xb - (k + m)) - _hat_cdf(xa - (k + m))) for m in range(4)]
-
-
-def _left_x(f: _Frame, edges: _Edges, y):
-    """x of the left chain at height y (strictly between B and T)."""
-    on_first = y <= f.L[1]
-    p = [dr.select(on_first, a, b) for a, b in zip(edges.start[2], edges.start[3])]
-    dx = dr.select(on_first, edges.d[2][0], edges.d[3][0])
-    inv_dy = dr.select(on_first, edges.inv[2][1], edges.inv[3][1])
+def _chain_x(f: _Frame, edges: _Edges, chain: int, y):
+    """x of the right (0) or left (1) chain at height y (strictly between B and T)."""
+    middle = f.R if chain == 0 else f.L
+    first, second = 2 * chain, 2 * chain + 1
+    on_first = y <= middle[1]
+    p = [dr.select(on_first, a, b) for a, b in zip(edges.start[first], edges.start[second])]
+    dx = dr.select(on_first, edges.d[first][0], edges.d[second][0])
+    inv_dy = dr.select(on_first, edges.inv[first][1], edges.inv[second][1])
     return dr.fma((y - p[1]) * inv_dy, dx, p[0])
 
 
@@ -380,7 +402,10 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
         raise ValueError('the box filter needs every level of the MIP pyramid')
     active = mi.Bool(active)
     f = _frame(mip, tables.wrap, st, dst0, dst1, active)
-    acc = _walk(f, mip.value_type())
+    edges = _Edges.of(f)
+    value_type = mip.value_type()
+    acc = (_walk(f, edges, f.texels.reading(tables.walk), value_type)
+           + _chords(f, edges, f.texels.reading(tables.chords), value_type))
     result = dr.select(f.run, acc / dr.select(f.run, f.area, 1.0), 0)
     cell = _single_cell(mip, f.level, st, dst0, dst1, f.in_cell)
     result = dr.select(f.in_cell, cell, result)
@@ -389,59 +414,104 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     return dr.select(coarse, mip.coarsest(active & coarse), result)
 
 
-def _walk(f: _Frame, value_type):
-    """∫ F dy up the right chain minus up the left chain (lanes ``f.run``)."""
-    edges = _Edges.of(f)
-    bx0, by0 = dr.floor(f.B[0]), dr.floor(f.B[1])
-    tex = f.texels
+@dataclass
+class _Leaving:
+    """The two texels of the walk's 2×2 block that an iteration reads — the ones leaving it —
+    at columns ``col_a``, ``col_b`` of rows ``row_a``, ``row_b`` (block-local 0/1), their
+    accumulated weights, and the weights the block keeps (shifted to its new position)."""
+    col_a: object
+    row_a: object
+    col_b: object
+    row_b: object
+    w_a: object
+    w_b: object
+    kept: list
 
-    def cond(e, mode, s, x, y, i, j, k, xa, n, acc):
+
+def _leaving(w, knot, right, row_out) -> _Leaving:
+    """Which block texels leave: a knot crossed to the right takes the left column away, to the
+    left the right one; a band boundary (``row_out``: also the chain's end) the lower row."""
+    z = mi.Float(0)
+    left_col = knot & right
+    col_a = dr.select(knot & ~right, 1.0, 0.0)
+    kept = [dr.select(left_col, w[1], dr.select(knot, z, w[2])),
+            dr.select(left_col, z, dr.select(knot, w[0], w[3])),
+            dr.select(left_col, w[3], dr.select(knot, z, 0.0)),
+            dr.select(left_col, z, dr.select(knot, w[2], 0.0))]
+    moved = knot | row_out
+    kept = [dr.select(moved, k, c) for k, c in zip(kept, w)]
+    return _Leaving(col_a, z, dr.select(knot, col_a, 1.0), dr.select(knot, 1.0, 0.0),
+                    dr.select(knot, dr.select(right, w[0], w[1]), w[0]),
+                    dr.select(knot, dr.select(right, w[2], w[3]), w[1]), kept)
+
+
+def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
+    """∫ F dy up the right chain minus up the left chain (lanes ``f.run``), without the chords.
+    Each texel of the cell's 2×2 block collects its weight while the walk stays next to it and
+    is read once, when it leaves the block (a knot or band crossed; at a chain's end the lower
+    row, then — ``flush`` — the upper one)."""
+    bx0, by0 = dr.floor(f.B[0]), dr.floor(f.B[1])
+
+    def cond(e, flush, s, x, y, i, j, w, n, acc):
         return f.run & (e < 4) & (n < MAX_STEPS)
 
-    def body(e, mode, s, x, y, i, j, k, xa, n, acc):
-        walking = mode == _WALK
+    def body(e, flush, s, x, y, i, j, w, n, acc):
         start, d, inv = edges.pick(e)
         step = _next_event(start, d, inv, s, i, j)
-        zT = f.T[1] - j
-        w_piece = _piece_weights(x, y, step.x1, step.y1, i, j, zT)
-        w_chord = _chord_weights(xa, x, k, _omega_hi(0.0, zT))
+        walking = ~flush
         sign = dr.select(e < 2, 1.0, -1.0)
-        weights = [sign * dr.select(walking, p, c) for p, c in zip(w_piece, w_chord)]
-        # the four texels: a 2×2 block of the walk's cell, or four knots of the chord's row
-        col0 = f.X0 + dr.select(walking, i, k)
-        col2 = f.X0 + dr.select(walking, i, k + 2)
-        row_lo = tex.row(f.Y0 + dr.select(walking, j, j + 1))
-        row_hi = tex.row(f.Y0 + j + 1)
-        for (row, col), wt in zip(((row_lo, col0), (row_lo, col0 + 1), (row_hi, col2),
-                                   (row_hi, col2 + 1)), weights):
-            acc = dr.fma(tex.read(row, col, f.run & (wt != 0)), wt, acc)
+        piece = _piece_weights(x, y, step.x1, step.y1, i, j, f.T[1] - j)
+        w = [dr.select(walking, dr.fma(sign, p, c), c) for p, c in zip(piece, w)]
+        knot = walking & step.knot
+        chain_end = walking & step.end & ((e & 1) == 1)
+        row_out = (walking & step.band) | chain_end | flush
+        out = _leaving(w, knot, step.right, row_out)
+        reads = knot | row_out
+        for col, row, wt in ((out.col_a, out.row_a, out.w_a), (out.col_b, out.row_b, out.w_b)):
+            texel_row = tex.row(f.Y0 + j + row)
+            v = tex.read(texel_row, f.X0 + i + col, f.run & reads & (wt != 0))
+            acc = dr.fma(v, wt, acc)
         # the walk moves on
-        i_w = dr.select(step.knot, dr.select(step.right, i + 1, i - 1), i)
-        j_w = dr.select(step.band, j + 1, j)
-        chord = walking & step.band & (e < 2)
-        xa_new = _left_x(f, edges, step.y1)
-        k_w = dr.floor(dr.minimum(xa_new, step.x1))
-        to_left = step.end & (e == 1)
-        e_w = dr.select(step.end, e + 1, e)
-        s_w = dr.select(step.end, 0.0, step.s1)
-        x_w = dr.select(to_left, f.B[0], step.x1)
-        y_w = dr.select(to_left, f.B[1], step.y1)
-        i_w = dr.select(to_left, bx0, i_w)
-        j_w = dr.select(to_left, by0, j_w)
-        # a chord moves on by four knots, and ends past the later of its two ends
-        k_c = k + 4
-        chord_done = k_c > dr.ceil(dr.maximum(xa, x))
-        mode = dr.select(walking, dr.select(chord, _CHORD, _WALK),
-                         dr.select(chord_done, _WALK, _CHORD))
-        return (dr.select(walking, e_w, e), mi.UInt32(mode), dr.select(walking, s_w, s),
-                dr.select(walking, x_w, x), dr.select(walking, y_w, y),
-                dr.select(walking, i_w, i), dr.select(walking, j_w, j),
-                dr.select(walking, k_w, k_c), dr.select(walking & chord, xa_new, xa), n + 1, acc)
+        i_n = dr.select(knot, dr.select(step.right, i + 1, i - 1), i)
+        j_n = dr.select(row_out, j + 1, j)
+        next_edge = (walking & step.end & ~chain_end) | flush
+        e_n = dr.select(next_edge, e + 1, e)
+        restart = flush & (e == 1)                      # the left chain starts at B again
+        x_n = dr.select(restart, f.B[0], dr.select(walking, step.x1, x))
+        y_n = dr.select(restart, f.B[1], dr.select(walking, step.y1, y))
+        s_n = dr.select(next_edge, 0.0, dr.select(walking, step.s1, s))
+        i_n = dr.select(restart, bx0, i_n)
+        j_n = dr.select(restart, by0, j_n)
+        return (e_n, chain_end, s_n, x_n, y_n, i_n, j_n, out.kept, n + 1, acc)
 
     zero = mi.Float(0)
-    state = (mi.UInt32(0), mi.UInt32(_WALK), zero, f.B[0], f.B[1], bx0, by0, zero, zero,
+    state = (mi.UInt32(0), mi.Bool(False), zero, f.B[0], f.B[1], bx0, by0, [zero] * 4,
              mi.UInt32(0), dr.zeros(value_type))
-    return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box')[-1]
+    return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_walk')[-1]
+
+
+def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
+    """The right chain's row constants: at every band boundary y strictly between B and T, the
+    row entering there (y + 1) integrated from the left chain to the right one, times its tent
+    weight over the rest of the footprint — four knots per iteration."""
+
+    def cond(y, k, n, acc):
+        return f.run & (y < f.T[1]) & (n < MAX_STEPS)
+
+    def body(y, k, n, acc):
+        xa, xb = _chain_x(f, edges, 1, y), _chain_x(f, edges, 0, y)
+        lo, hi = dr.floor(dr.minimum(xa, xb)), dr.ceil(dr.maximum(xa, xb))
+        omega = _omega_hi(0.0, f.T[1] - y)
+        row = tex.row(f.Y0 + y + 1)
+        for m in range(4):
+            knot = lo + k + m
+            wt = omega * (_hat_cdf(xb - knot) - _hat_cdf(xa - knot))
+            acc = dr.fma(tex.read(row, f.X0 + knot, f.run & (knot <= hi) & (wt != 0)), wt, acc)
+        done = lo + k + 4 > hi
+        return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), n + 1, acc
+
+    state = (dr.floor(f.B[1]) + 1, mi.Float(0), mi.UInt32(0), dr.zeros(value_type))
+    return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_chords')[-1]
 
 
 def _single_cell(mip, level, st, dst0, dst1, active):
