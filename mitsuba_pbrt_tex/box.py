@@ -180,7 +180,7 @@ class _Texels:
         """Texel x of a row from :meth:`row`: Float or Color3f."""
         ix, ok = self._wrap(x, self.w, self.inv_w, None if self.mask is None else self.mask[0])
         index = row[0] + ix
-        active = active & ok & row[1]
+        active = ok & row[1] if active is None else active & ok & row[1]
         if self.rgb:
             v = dr.gather(mi.Array4f, self.buffer, index, active)
             return mi.Color3f(v.x, v.y, v.z)
@@ -286,41 +286,51 @@ def _lowest_corner(cx, cy, ax, ay, bx, by):
 # ------------------------------------------------------------------------------------ walk
 @dataclass
 class _Edges:
-    """The four edges, walked upwards: 0 = B→R, 1 = R→T (right chain), 2 = B→L, 3 = L→T (left
-    chain): start points, directions and their reciprocals (∞-safe: 0 where a component is 0)."""
+    """The four edges counter-clockwise: 0 = B→R, 1 = R→T (the right chain, upwards), 2 = T→L,
+    3 = L→B (the left chain, downwards): start points, directions and their reciprocals (0 where
+    a component is 0)."""
     start: list
     d: list
     inv: list
 
     @staticmethod
     def of(f: _Frame) -> '_Edges':
-        pairs = [(f.B, f.R), (f.R, f.T), (f.B, f.L), (f.L, f.T)]
-        start = [p for p, _ in pairs]
-        d = [(q[0] - p[0], q[1] - p[1]) for p, q in pairs]
+        corners = [f.B, f.R, f.T, f.L]
+        start = corners
+        d = [(q[0] - p[0], q[1] - p[1]) for p, q in zip(corners, corners[1:] + corners[:1])]
         inv = [tuple(dr.select(c != 0, dr.rcp(c), 0.0) for c in v) for v in d]
         return _Edges(start, d, inv)
 
     def pick(self, e):
         def sel(items):
-            out = items[3]
-            for m in (2, 1, 0):
-                out = tuple(dr.select(e == m, p, q) for p, q in zip(items[m], out))
-            return out
+            lo = tuple(dr.select((e & 1) == 1, p, q) for p, q in zip(items[1], items[0]))
+            hi = tuple(dr.select((e & 1) == 1, p, q) for p, q in zip(items[3], items[2]))
+            return tuple(dr.select(e >= 2, p, q) for p, q in zip(hi, lo))
         return sel(self.start), sel(self.d), sel(self.inv)
 
 
-def _omega_lo(z, zT):
-    """∫ (1 - t) dt from z to min(1, zT): the lower row's remaining tent weight in its band."""
-    e = dr.clip(zT, 0.0, 1.0)
-    return (e - 0.5 * e * e) - (z - 0.5 * z * z)
+@dataclass
+class _Remaining:
+    """The remaining tent weights of a band's two rows as functions of the height z ∈ [0, 1]
+    in the band: Λ(z) = ∫ of the row's tent weight from z up to where the chain leaves the row
+    (the top corner T, ``zT`` above the band's floor, or the row's last band). Lower row (weight
+    1 - z, up to min(1, zT)): ``lo - z + z²/2``; upper row (weight z, then 2 - z in the band
+    above, up to min(2, zT)): ``hi - z²/2``."""
+    lo: object
+    hi: object
 
+    @staticmethod
+    def of(zT) -> '_Remaining':
+        e = dr.clip(zT, 0.0, 1.0)
+        e2 = dr.clip(zT, 1.0, 2.0)
+        half_e2 = 0.5 * e * e
+        return _Remaining(e - half_e2, half_e2 + dr.fma(e2, dr.fma(e2, -0.5, 2.0), -1.5))
 
-def _omega_hi(z, zT):
-    """The upper row's remaining tent weight: ∫ t dt from z to min(1, zT), plus ∫ (2 - t) dt
-    from 1 to min(2, zT) (the band above, where it is the lower row)."""
-    e = dr.clip(zT, 0.0, 1.0)
-    e2 = dr.clip(zT, 1.0, 2.0)
-    return 0.5 * (e * e - z * z) + (2 * e2 - 0.5 * e2 * e2 - 1.5)
+    def lower(self, z):
+        return dr.fma(0.5 * z, z, self.lo - z)
+
+    def upper(self, z):
+        return dr.fma(-0.5 * z, z, self.hi)
 
 
 def _hat_cdf(z):
@@ -343,55 +353,54 @@ class _Step:
     right: object
 
 
-def _next_event(start, d, inv, s, i, j) -> _Step:
-    """The next knot, band boundary or end along the edge from param ``s`` in cell (i, j)."""
+def _next_event(start, d, inv, s, i, j, up) -> _Step:
+    """The next knot, band boundary or end along the edge from param ``s`` in cell (i, j)
+    (``up``: the edge goes upwards, else downwards)."""
     right = d[0] > 0
     knot_x = dr.select(right, i + 1, i)
+    band_y = dr.select(up, j + 1, j)
     sk = dr.select(d[0] != 0, (knot_x - start[0]) * inv[0], dr.inf)
-    sb = dr.select(d[1] > 0, (j + 1 - start[1]) * inv[1], dr.inf)
+    sb = dr.select(d[1] != 0, (band_y - start[1]) * inv[1], dr.inf)
     first = dr.minimum(sk, sb)
     end = ~(first < 1)
     band = ~end & (sb <= sk)
     knot = ~end & ~band
     s1 = dr.clip(first, s, 1.0)
     x1 = dr.select(knot, knot_x, dr.fma(s1, d[0], start[0]))
-    y1 = dr.select(band, j + 1, dr.fma(s1, d[1], start[1]))
+    y1 = dr.select(band, band_y, dr.fma(s1, d[1], start[1]))
     x1 = dr.select(end, start[0] + d[0], x1)
     y1 = dr.select(end, start[1] + d[1], y1)
     return _Step(s1, dr.clip(x1, i, i + 1), dr.clip(y1, j, j + 1), knot, band, end, right)
 
 
-def _piece_weights(x, y, x1, y1, i, j, zT):
+def _piece_weights(x, y, x1, y1, i, j, rem: _Remaining):
     """Weights of texels (i, j), (i+1, j), (i, j+1), (i+1, j+1) for the walk's piece from
-    (x, y) to (x1, y1) inside cell (i, j): its own ∫ F dy plus what Q gained on it times the
-    rows' remaining tent weights. With t ∈ [0, 1] along the piece, Q gains D·t·(v_i + (u0 +
-    D·t/2)·(v_i+1 - v_i)) (D = x1 - x, u0 = x - i) and the rows weigh (1 - z), z, z = z0 + Δz·t:
-    the integrals of those products over t in closed form."""
-    D, u0 = x1 - x, x - i
-    z0, dz = y - j, y1 - y
-    b1, b2 = D * u0, 0.5 * D * D                      # v_i+1's share: b1·t + b2·t²
-    sb = 0.5 * b1 + b2 * (1 / 3)                      # ∫ share dt
-    tb = b1 * (1 / 3) + 0.25 * b2                     # ∫ t·share dt
-    sd, td = 0.5 * D, D * (1 / 3)                     # the same for the whole gain D·t
-    lo_b = dz * dr.fma(1 - z0, sb, -dz * tb)          # lower row: weight 1 - z
-    lo_d = dz * dr.fma(1 - z0, sd, -dz * td)
-    hi_b = dz * sb - lo_b                             # upper row: weight z = 1 - (1 - z)
-    hi_d = dz * sd - lo_d
-    gain_b = b1 + b2                                  # at the piece's end (t = 1)
-    gain_a = D - gain_b
-    olo, ohi = _omega_lo(z0 + dz, zT), _omega_hi(z0 + dz, zT)
-    return [dr.fma(gain_a, olo, lo_d - lo_b), dr.fma(gain_b, olo, lo_b),
-            dr.fma(gain_a, ohi, hi_d - hi_b), dr.fma(gain_b, ohi, hi_b)]
+    (x, y) to (x1, y1) inside cell (i, j). Along the chain, a row's antiderivative gains
+    ``∫ r dx`` on the piece, and that gain counts with the row's remaining tent weight Λ(y)
+    (:class:`_Remaining`): by parts, the piece's whole contribution is ``∫ Λ(y) r(x) dx``
+    along it, in the direction walked (so the left chain, walked downwards, subtracts). Λ is
+    quadratic in y and r linear in x, both linear along the piece: a cubic, exact with two
+    Gauss–Legendre points."""
+    h = 0.5 * (x1 - x)
+    z0, dz, dx = y - j, y1 - y, x1 - x
+    out = [0.0, 0.0, 0.0, 0.0]
+    for node in (0.5 - _GL, 0.5 + _GL):
+        u = dr.fma(node, dx, x) - i
+        z = dr.fma(node, dz, z0)
+        lo, hi = h * rem.lower(z), h * rem.upper(z)
+        lo_b, hi_b = lo * u, hi * u
+        out = [out[0] + (lo - lo_b), out[1] + lo_b, out[2] + (hi - hi_b), out[3] + hi_b]
+    return out
 
 
 def _chain_x(f: _Frame, edges: _Edges, chain: int, y):
     """x of the right (0) or left (1) chain at height y (strictly between B and T)."""
     middle = f.R if chain == 0 else f.L
-    first, second = 2 * chain, 2 * chain + 1
-    on_first = y <= middle[1]
-    p = [dr.select(on_first, a, b) for a, b in zip(edges.start[first], edges.start[second])]
-    dx = dr.select(on_first, edges.d[first][0], edges.d[second][0])
-    inv_dy = dr.select(on_first, edges.inv[first][1], edges.inv[second][1])
+    lower, upper = (0, 1) if chain == 0 else (3, 2)
+    on_lower = y <= middle[1]
+    p = [dr.select(on_lower, a, b) for a, b in zip(edges.start[lower], edges.start[upper])]
+    dx = dr.select(on_lower, edges.d[lower][0], edges.d[upper][0])
+    inv_dy = dr.select(on_lower, edges.inv[lower][1], edges.inv[upper][1])
     return dr.fma((y - p[1]) * inv_dy, dx, p[0])
 
 
@@ -417,8 +426,8 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
 @dataclass
 class _Leaving:
     """The two texels of the walk's 2×2 block that an iteration reads — the ones leaving it —
-    at columns ``col_a``, ``col_b`` of rows ``row_a``, ``row_b`` (block-local 0/1), their
-    accumulated weights, and the weights the block keeps (shifted to its new position)."""
+    at block columns ``col_a``, ``col_b`` and rows ``row_a``, ``row_b`` (0/1), their weights,
+    and the weights the block keeps, moved to their place in its new position."""
     col_a: object
     row_a: object
     col_b: object
@@ -428,66 +437,60 @@ class _Leaving:
     kept: list
 
 
-def _leaving(w, knot, right, row_out) -> _Leaving:
-    """Which block texels leave: a knot crossed to the right takes the left column away, to the
-    left the right one; a band boundary (``row_out``: also the chain's end) the lower row."""
+def _leaving(w, knot, right, band, up) -> _Leaving:
+    """Which block texels leave (slots: (i, j), (i+1, j), (i, j+1), (i+1, j+1)): a knot crossed
+    to the right takes the left column away, to the left the right one; a band boundary crossed
+    upwards the lower row, downwards the upper one."""
     z = mi.Float(0)
-    left_col = knot & right
-    col_a = dr.select(knot & ~right, 1.0, 0.0)
-    kept = [dr.select(left_col, w[1], dr.select(knot, z, w[2])),
-            dr.select(left_col, z, dr.select(knot, w[0], w[3])),
-            dr.select(left_col, w[3], dr.select(knot, z, 0.0)),
-            dr.select(left_col, z, dr.select(knot, w[2], 0.0))]
-    moved = knot | row_out
-    kept = [dr.select(moved, k, c) for k, c in zip(kept, w)]
-    return _Leaving(col_a, z, dr.select(knot, col_a, 1.0), dr.select(knot, 1.0, 0.0),
-                    dr.select(knot, dr.select(right, w[0], w[1]), w[0]),
-                    dr.select(knot, dr.select(right, w[2], w[3]), w[1]), kept)
+    kr, kl = knot & right, knot & ~right
+    bu, bd = band & up, band & ~up
+    kept = [dr.select(kr, w[1], dr.select(bu, w[2], dr.select(kl | bd, z, w[0]))),
+            dr.select(kl, w[0], dr.select(bu, w[3], dr.select(kr | bd, z, w[1]))),
+            dr.select(kr, w[3], dr.select(bd, w[0], dr.select(kl | bu, z, w[2]))),
+            dr.select(kl, w[2], dr.select(bd, w[1], dr.select(kr | bu, z, w[3])))]
+    col_a = dr.select(kl, 1.0, 0.0)
+    row_a = dr.select(bd, 1.0, 0.0)
+    return _Leaving(col_a, row_a, dr.select(knot, col_a, 1.0), dr.select(knot, 1.0, row_a),
+                    dr.select(kl, w[1], dr.select(bd, w[2], w[0])),
+                    dr.select(kr, w[2], dr.select(knot | bd, w[3], w[1])), kept)
 
 
 def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
-    """∫ F dy up the right chain minus up the left chain (lanes ``f.run``), without the chords.
-    Each texel of the cell's 2×2 block collects its weight while the walk stays next to it and
-    is read once, when it leaves the block (a knot or band crossed; at a chain's end the lower
-    row, then — ``flush`` — the upper one)."""
-    bx0, by0 = dr.floor(f.B[0]), dr.floor(f.B[1])
+    """∮ F dy counter-clockwise: up the right chain, down the left one (lanes ``f.run``),
+    without the chords. Each texel of the cell's 2×2 block collects its weight while the walk
+    stays next to it and is read once, when it leaves the block (a knot or band crossed; back at
+    B the lower row, then — edge 4, a flush — the upper one)."""
+    def cond(e, s, x, y, i, j, w, n, acc):
+        return (e < 5) & (n < MAX_STEPS)
 
-    def cond(e, flush, s, x, y, i, j, w, n, acc):
-        return f.run & (e < 4) & (n < MAX_STEPS)
-
-    def body(e, flush, s, x, y, i, j, w, n, acc):
+    def body(e, s, x, y, i, j, w, n, acc):
         start, d, inv = edges.pick(e)
-        step = _next_event(start, d, inv, s, i, j)
-        walking = ~flush
-        sign = dr.select(e < 2, 1.0, -1.0)
-        piece = _piece_weights(x, y, step.x1, step.y1, i, j, f.T[1] - j)
-        w = [dr.select(walking, dr.fma(sign, p, c), c) for p, c in zip(piece, w)]
+        up = e < 2
+        step = _next_event(start, d, inv, s, i, j, up)
+        walking = e < 4
+        piece = _piece_weights(x, y, step.x1, step.y1, i, j, _Remaining.of(f.T[1] - j))
+        w = [dr.select(walking, c + p, c) for p, c in zip(piece, w)]
         knot = walking & step.knot
-        chain_end = walking & step.end & ((e & 1) == 1)
-        row_out = (walking & step.band) | chain_end | flush
-        out = _leaving(w, knot, step.right, row_out)
-        reads = knot | row_out
+        closed = (walking & step.end & (e == 3)) | ~walking     # back at B: flush the block
+        band = (walking & step.band) | closed
+        rising = up | closed
+        out = _leaving(w, knot, step.right, band, rising)
         for col, row, wt in ((out.col_a, out.row_a, out.w_a), (out.col_b, out.row_b, out.w_b)):
-            texel_row = tex.row(f.Y0 + j + row)
-            v = tex.read(texel_row, f.X0 + i + col, f.run & reads & (wt != 0))
+            v = tex.read(tex.row(f.Y0 + j + row), f.X0 + i + col, knot | band)
             acc = dr.fma(v, wt, acc)
         # the walk moves on
         i_n = dr.select(knot, dr.select(step.right, i + 1, i - 1), i)
-        j_n = dr.select(row_out, j + 1, j)
-        next_edge = (walking & step.end & ~chain_end) | flush
-        e_n = dr.select(next_edge, e + 1, e)
-        restart = flush & (e == 1)                      # the left chain starts at B again
-        x_n = dr.select(restart, f.B[0], dr.select(walking, step.x1, x))
-        y_n = dr.select(restart, f.B[1], dr.select(walking, step.y1, y))
-        s_n = dr.select(next_edge, 0.0, dr.select(walking, step.s1, s))
-        i_n = dr.select(restart, bx0, i_n)
-        j_n = dr.select(restart, by0, j_n)
-        return (e_n, chain_end, s_n, x_n, y_n, i_n, j_n, out.kept, n + 1, acc)
+        j_n = dr.select(band, dr.select(rising, j + 1, j - 1), j)
+        next_edge = (walking & step.end) | ~walking
+        return (dr.select(next_edge, e + 1, e), dr.select(next_edge, 0.0, step.s1),
+                dr.select(walking, step.x1, x), dr.select(walking, step.y1, y), i_n, j_n,
+                out.kept, n + 1, acc)
 
     zero = mi.Float(0)
-    state = (mi.UInt32(0), mi.Bool(False), zero, f.B[0], f.B[1], bx0, by0, [zero] * 4,
-             mi.UInt32(0), dr.zeros(value_type))
-    return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_walk')[-1]
+    state = (mi.UInt32(0), zero, f.B[0], f.B[1], dr.floor(f.B[0]), dr.floor(f.B[1]),
+             [zero] * 4, mi.UInt32(0), dr.zeros(value_type))
+    return dr.while_loop(state, lambda *a: f.run & cond(*a), body, max_iterations=-1,
+                         label='pbrt_box_walk')[-1]
 
 
 def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
@@ -501,12 +504,12 @@ def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
     def body(y, k, n, acc):
         xa, xb = _chain_x(f, edges, 1, y), _chain_x(f, edges, 0, y)
         lo, hi = dr.floor(dr.minimum(xa, xb)), dr.ceil(dr.maximum(xa, xb))
-        omega = _omega_hi(0.0, f.T[1] - y)
+        omega = _Remaining.of(f.T[1] - y).hi
         row = tex.row(f.Y0 + y + 1)
         for m in range(4):
             knot = lo + k + m
             wt = omega * (_hat_cdf(xb - knot) - _hat_cdf(xa - knot))
-            acc = dr.fma(tex.read(row, f.X0 + knot, f.run & (knot <= hi) & (wt != 0)), wt, acc)
+            acc = dr.fma(tex.read(row, f.X0 + knot, knot <= hi), wt, acc)
         done = lo + k + 4 > hi
         return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), n + 1, acc
 
