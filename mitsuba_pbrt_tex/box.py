@@ -293,20 +293,27 @@ class _Edges:
     d: list
     inv: list
 
+    centre: tuple
+
     @staticmethod
     def of(f: _Frame) -> '_Edges':
         corners = [f.B, f.R, f.T, f.L]
         start = corners
         d = [(q[0] - p[0], q[1] - p[1]) for p, q in zip(corners, corners[1:] + corners[:1])]
         inv = [tuple(dr.select(c != 0, dr.rcp(c), 0.0) for c in v) for v in d]
-        return _Edges(start, d, inv)
+        centre = tuple(0.5 * (b + t) for b, t in zip(f.B, f.T))
+        return _Edges(start, d, inv, centre)
 
     def pick(self, e):
-        def sel(items):
-            lo = tuple(dr.select((e & 1) == 1, p, q) for p, q in zip(items[1], items[0]))
-            hi = tuple(dr.select((e & 1) == 1, p, q) for p, q in zip(items[3], items[2]))
-            return tuple(dr.select(e >= 2, p, q) for p, q in zip(hi, lo))
-        return sel(self.start), sel(self.d), sel(self.inv)
+        """Edge e's start, direction and reciprocals. Edges 2 and 3 are edges 0 and 1 turned
+        through the centre (a parallelogram): start 2·centre - start, direction negated."""
+        odd, turned = (e & 1) == 1, e >= 2
+        sign = dr.select(turned, -1.0, 1.0)
+        p = [dr.select(odd, a, b) - c for a, b, c in zip(self.start[1], self.start[0], self.centre)]
+        start = tuple(dr.fma(sign, q, c) for q, c in zip(p, self.centre))
+        d = tuple(sign * dr.select(odd, a, b) for a, b in zip(self.d[1], self.d[0]))
+        inv = tuple(sign * dr.select(odd, a, b) for a, b in zip(self.inv[1], self.inv[0]))
+        return start, d, inv
 
 
 @dataclass
@@ -460,10 +467,7 @@ def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
     without the chords. Each texel of the cell's 2×2 block collects its weight while the walk
     stays next to it and is read once, when it leaves the block (a knot or band crossed; back at
     B the lower row, then — edge 4, a flush — the upper one)."""
-    def cond(e, s, x, y, i, j, w, n, acc):
-        return (e < 5) & (n < MAX_STEPS)
-
-    def body(e, s, x, y, i, j, w, n, acc):
+    def body(e, s, x, y, i, j, w, acc):
         start, d, inv = edges.pick(e)
         up = e < 2
         step = _next_event(start, d, inv, s, i, j, up)
@@ -484,12 +488,14 @@ def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
         next_edge = (walking & step.end) | ~walking
         return (dr.select(next_edge, e + 1, e), dr.select(next_edge, 0.0, step.s1),
                 dr.select(walking, step.x1, x), dr.select(walking, step.y1, y), i_n, j_n,
-                out.kept, n + 1, acc)
+                out.kept, acc)
 
     zero = mi.Float(0)
     state = (mi.UInt32(0), zero, f.B[0], f.B[1], dr.floor(f.B[0]), dr.floor(f.B[1]),
-             [zero] * 4, mi.UInt32(0), dr.zeros(value_type))
-    return dr.while_loop(state, lambda *a: f.run & cond(*a), body, max_iterations=-1,
+             [zero] * 4, dr.zeros(value_type))
+    # every iteration ends the edge or moves to the next knot or band towards its end: at most
+    # |Δx| + |Δy| + 3 per edge (a NaN ends it), so no step count is needed
+    return dr.while_loop(state, lambda e, *_: f.run & (e < 5), body, max_iterations=-1,
                          label='pbrt_box_walk')[-1]
 
 
