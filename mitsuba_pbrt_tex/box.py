@@ -75,9 +75,6 @@ MAX_BANDS = 16
 MAX_PERIMETER = 256
 #: Footprints under this area (level-0 texels²) are points: bilinear at level 0.
 MIN_AREA = 1e-8
-#: Safety net against a walk that would not end (every walk ends well before: ≈ perimeter +
-#: area / 4 ≤ ~2·MAX_PERIMETER + MAX_BANDS·MAX_PERIMETER / 8 iterations).
-MAX_STEPS = 16384
 BOX_WRAPS = ('repeat', 'mirror', 'clamp', 'black')
 _GL = 0.5 / math.sqrt(3.0)              # two-point Gauss–Legendre nodes on [0, 1]: 1/2 ∓ _GL
 
@@ -472,8 +469,10 @@ def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
         up = e < 2
         step = _next_event(start, d, inv, s, i, j, up)
         walking = e < 4
-        piece = _piece_weights(x, y, step.x1, step.y1, i, j, _Remaining.of(f.T[1] - j))
-        w = [dr.select(walking, c + p, c) for p, c in zip(piece, w)]
+        x1 = dr.select(walking, step.x1, x)             # the flush stays put: no piece
+        y1 = dr.select(walking, step.y1, y)
+        piece = _piece_weights(x, y, x1, y1, i, j, _Remaining.of(f.T[1] - j))
+        w = [c + p for p, c in zip(piece, w)]
         knot = walking & step.knot
         closed = (walking & step.end & (e == 3)) | ~walking     # back at B: flush the block
         band = (walking & step.band) | closed
@@ -486,9 +485,8 @@ def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
         i_n = dr.select(knot, dr.select(step.right, i + 1, i - 1), i)
         j_n = dr.select(band, dr.select(rising, j + 1, j - 1), j)
         next_edge = (walking & step.end) | ~walking
-        return (dr.select(next_edge, e + 1, e), dr.select(next_edge, 0.0, step.s1),
-                dr.select(walking, step.x1, x), dr.select(walking, step.y1, y), i_n, j_n,
-                out.kept, acc)
+        return (dr.select(next_edge, e + 1, e), dr.select(next_edge, 0.0, step.s1), x1, y1,
+                i_n, j_n, out.kept, acc)
 
     zero = mi.Float(0)
     state = (mi.UInt32(0), zero, f.B[0], f.B[1], dr.floor(f.B[0]), dr.floor(f.B[1]),
@@ -504,10 +502,10 @@ def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
     row entering there (y + 1) integrated from the left chain to the right one, times its tent
     weight over the rest of the footprint — four knots per iteration."""
 
-    def cond(y, k, n, acc):
-        return f.run & (y < f.T[1]) & (n < MAX_STEPS)
+    def cond(y, k, acc):
+        return f.run & (y < f.T[1])
 
-    def body(y, k, n, acc):
+    def body(y, k, acc):
         xa, xb = _chain_x(f, edges, 1, y), _chain_x(f, edges, 0, y)
         lo, hi = dr.floor(dr.minimum(xa, xb)), dr.ceil(dr.maximum(xa, xb))
         omega = _Remaining.of(f.T[1] - y).hi
@@ -516,10 +514,11 @@ def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
             knot = lo + k + m
             wt = omega * (_hat_cdf(xb - knot) - _hat_cdf(xa - knot))
             acc = dr.fma(tex.read(row, f.X0 + knot, knot <= hi), wt, acc)
-        done = lo + k + 4 > hi
-        return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), n + 1, acc
+        done = ~(lo + k + 4 <= hi)                      # (a NaN ends it too)
+        return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), acc
 
-    state = (dr.floor(f.B[1]) + 1, mi.Float(0), mi.UInt32(0), dr.zeros(value_type))
+    # ends: k grows by 4 up to the chord's last knot, then y by 1 up to T
+    state = (dr.floor(f.B[1]) + 1, mi.Float(0), dr.zeros(value_type))
     return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_chords')[-1]
 
 
