@@ -290,27 +290,22 @@ class _Edges:
     d: list
     inv: list
 
-    centre: tuple
-
     @staticmethod
     def of(f: _Frame) -> '_Edges':
         corners = [f.B, f.R, f.T, f.L]
-        start = corners
         d = [(q[0] - p[0], q[1] - p[1]) for p, q in zip(corners, corners[1:] + corners[:1])]
         inv = [tuple(dr.select(c != 0, dr.rcp(c), 0.0) for c in v) for v in d]
-        centre = tuple(0.5 * (b + t) for b, t in zip(f.B, f.T))
-        return _Edges(start, d, inv, centre)
+        return _Edges(corners, d, inv)
 
     def pick(self, e):
-        """Edge e's start, direction and reciprocals. Edges 2 and 3 are edges 0 and 1 turned
-        through the centre (a parallelogram): start 2·centre - start, direction negated."""
-        odd, turned = (e & 1) == 1, e >= 2
-        sign = dr.select(turned, -1.0, 1.0)
-        p = [dr.select(odd, a, b) - c for a, b, c in zip(self.start[1], self.start[0], self.centre)]
-        start = tuple(dr.fma(sign, q, c) for q, c in zip(p, self.centre))
-        d = tuple(sign * dr.select(odd, a, b) for a, b in zip(self.d[1], self.d[0]))
-        inv = tuple(sign * dr.select(odd, a, b) for a, b in zip(self.inv[1], self.inv[0]))
-        return start, d, inv
+        """Edge e's start, direction and reciprocals (the walk and :func:`_chain_x` read the
+        same values, so a row's chord starts where the walk meets the row, to the last bit)."""
+        def sel(items):
+            odd = (e & 1) == 1
+            lo = tuple(dr.select(odd, p, q) for p, q in zip(items[1], items[0]))
+            hi = tuple(dr.select(odd, p, q) for p, q in zip(items[3], items[2]))
+            return tuple(dr.select(e >= 2, p, q) for p, q in zip(hi, lo))
+        return sel(self.start), sel(self.d), sel(self.inv)
 
 
 @dataclass
@@ -417,9 +412,13 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     f = _frame(mip, tables.wrap, st, dst0, dst1, active)
     edges = _Edges.of(f)
     value_type = mip.value_type()
-    acc = (_walk(f, edges, f.texels.reading(tables.walk), value_type)
-           + _chords(f, edges, f.texels.reading(tables.chords), value_type))
-    result = dr.select(f.run, acc / dr.select(f.run, f.area, 1.0), 0)
+    acc, area = _walk(f, edges, f.texels.reading(tables.walk), value_type)
+    acc_c, area_c = _chords(f, edges, f.texels.reading(tables.chords), value_type)
+    # divided by the weights' own sum, the area of the polygon the walk integrated (its corners
+    # and crossings rounded to float32): a constant texture averages to itself exactly, and a
+    # thin footprint's area is not cancelled away against another rounding
+    area = dr.select(f.run, area + area_c, 1.0)
+    result = dr.select(f.run, (acc + acc_c) / dr.select(area > 0, area, 1.0), 0)
     cell = _single_cell(mip, f.level, st, dst0, dst1, f.in_cell)
     result = dr.select(f.in_cell, cell, result)
     result = dr.select(f.degenerate, mip.bilinear(0, st, active & f.degenerate), result)
@@ -464,7 +463,7 @@ def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
     without the chords. Each texel of the cell's 2×2 block collects its weight while the walk
     stays next to it and is read once, when it leaves the block (a knot or band crossed; back at
     B the lower row, then — edge 4, a flush — the upper one)."""
-    def body(e, s, x, y, i, j, w, acc):
+    def body(e, s, x, y, i, j, w, acc, area):
         start, d, inv = edges.pick(e)
         up = e < 2
         step = _next_event(start, d, inv, s, i, j, up)
@@ -481,20 +480,21 @@ def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
         for col, row, wt in ((out.col_a, out.row_a, out.w_a), (out.col_b, out.row_b, out.w_b)):
             v = tex.read(tex.row(f.Y0 + j + row), f.X0 + i + col, knot | band)
             acc = dr.fma(v, wt, acc)
+            area = area + dr.select(knot | band, wt, 0.0)     # (black: outside texels too)
         # the walk moves on
         i_n = dr.select(knot, dr.select(step.right, i + 1, i - 1), i)
         j_n = dr.select(band, dr.select(rising, j + 1, j - 1), j)
         next_edge = (walking & step.end) | ~walking
         return (dr.select(next_edge, e + 1, e), dr.select(next_edge, 0.0, step.s1), x1, y1,
-                i_n, j_n, out.kept, acc)
+                i_n, j_n, out.kept, acc, area)
 
     zero = mi.Float(0)
     state = (mi.UInt32(0), zero, f.B[0], f.B[1], dr.floor(f.B[0]), dr.floor(f.B[1]),
-             [zero] * 4, dr.zeros(value_type))
+             [zero] * 4, dr.zeros(value_type), zero)
     # every iteration ends the edge or moves to the next knot or band towards its end: at most
     # |Δx| + |Δy| + 3 per edge (a NaN ends it), so no step count is needed
     return dr.while_loop(state, lambda e, *_: f.run & (e < 5), body, max_iterations=-1,
-                         label='pbrt_box_walk')[-1]
+                         label='pbrt_box_walk')[-2:]
 
 
 def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
@@ -502,10 +502,10 @@ def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
     row entering there (y + 1) integrated from the left chain to the right one, times its tent
     weight over the rest of the footprint — four knots per iteration."""
 
-    def cond(y, k, acc):
+    def cond(y, k, acc, area):
         return f.run & (y < f.T[1])
 
-    def body(y, k, acc):
+    def body(y, k, acc, area):
         xa, xb = _chain_x(f, edges, 1, y), _chain_x(f, edges, 0, y)
         lo, hi = dr.floor(dr.minimum(xa, xb)), dr.ceil(dr.maximum(xa, xb))
         omega = _Remaining.of(f.T[1] - y).hi
@@ -514,12 +514,13 @@ def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
             knot = lo + k + m
             wt = omega * (_hat_cdf(xb - knot) - _hat_cdf(xa - knot))
             acc = dr.fma(tex.read(row, f.X0 + knot, knot <= hi), wt, acc)
+            area = area + wt
         done = ~(lo + k + 4 <= hi)                      # (a NaN ends it too)
-        return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), acc
+        return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), acc, area
 
     # ends: k grows by 4 up to the chord's last knot, then y by 1 up to T
-    state = (dr.floor(f.B[1]) + 1, mi.Float(0), dr.zeros(value_type))
-    return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_chords')[-1]
+    state = (dr.floor(f.B[1]) + 1, mi.Float(0), dr.zeros(value_type), mi.Float(0))
+    return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_chords')[-2:]
 
 
 def _single_cell(mip, level, st, dst0, dst1, active):
