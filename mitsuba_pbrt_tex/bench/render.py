@@ -80,12 +80,17 @@ def _checker_cases(cells):
     return builtin, ours
 
 
-def _image_methods(image, tiles, pixel=False, extra=None):
+def _image_common(image, tiles, extra):
+    """(our image texture's parameters, [Mitsuba's bitmap + path]) for a case."""
     extra = extra or {}
-    common = {'texture': 'tex/image_pbrt.xml', 'image': image, 'tiles': tiles, **extra}
     builtin = [Method('Mitsuba bitmap + path', {'texture': 'tex/image_bitmap.xml', 'image': image,
                                                'tiles': tiles, 'integrator': 'path', **extra},
                       False)]
+    return {'texture': 'tex/image_pbrt.xml', 'image': image, 'tiles': tiles, **extra}, builtin
+
+
+def _image_methods(image, tiles, pixel=False, extra=None):
+    common, builtin = _image_common(image, tiles, extra)
     ours = [Method('pbrt_imagemap bilinear', {**common, 'filter': 'bilinear'}, True),
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear', 'trilinearwidth': 'v3'}, True, 'trilinear-width'),
             Method('pbrt_imagemap trilinear v4', {**common, 'filter': 'trilinear', 'trilinearwidth': 'v4'}, True, 'trilinear-width'),
@@ -103,13 +108,9 @@ def _image_methods(image, tiles, pixel=False, extra=None):
 
 def _gaussian_methods(image, tiles, extra=None):
     """On a Gaussian film: Mitsuba's bitmap + path, and ours — sample-centred filters and pixel
-    footprints, whose texture filters the film's own kernel (silhouette samples need the box
-    film)."""
-    extra = extra or {}
-    common = {'texture': 'tex/image_pbrt.xml', 'image': image, 'tiles': tiles, **extra}
-    builtin = [Method('Mitsuba bitmap + path', {'texture': 'tex/image_bitmap.xml', 'image': image,
-                                               'tiles': tiles, 'integrator': 'path', **extra},
-                      False)]
+    footprints, whose texture filters the film's own kernel, with and without silhouette
+    samples."""
+    common, builtin = _image_common(image, tiles, extra)
     ours = [Method('pbrt_imagemap bilinear', {**common, 'filter': 'bilinear'}, True),
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear'}, True),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True),
