@@ -8,9 +8,9 @@ and returns a Float (1-channel image) or Color3f (RGB image):
   alone (see ``pbrt_imagemap``: the other levels of these two filters are built on request);
 * ``trilinear`` — two levels blended;
 * ``ewa`` — :class:`~mitsuba_pbrt_tex.ewa.EWAFilter`;
-* ``box`` — :func:`~mitsuba_pbrt_tex.box.box`, the exact average over the footprint, which also
-  reads the pyramid's prefix tables (:func:`~mitsuba_pbrt_tex.box.build_box_tables`, built by the
-  caller in one explicit step and passed as ``tables``).
+* ``box`` — :func:`~mitsuba_pbrt_tex.box.box`, the exact average over the footprint, which reads
+  the pyramid through :func:`~mitsuba_pbrt_tex.box.build_box_tables` (its buffer's AD aliases,
+  made by the caller outside any symbolic scope and passed as ``tables``).
 
 :meth:`TextureFilter.gradient` gives d(value)/d(s, t) of the bilinear reconstruction at the level
 the footprint selects (blended between two levels like trilinear for ``trilinear`` and ``ewa``;

@@ -52,11 +52,10 @@ their ``data`` is updated.
 
 ``box``: the exact area average of the bilinear reconstruction over the footprint parallelogram
 (one pixel around the lookup: ``st ± dst/dx/2 ± dst/dy/2``), with no minimum width under
-magnification and no anisotropy limit; cost grows with the footprint's *shorter* extent only, up
-to :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels, beyond which a coarser level is averaged
-exactly (see :mod:`mitsuba_pbrt_tex.box`). It needs per-row and per-column prefix tables of every
-level, built once with the pyramid (float64, RGB padded to RGBA: 320 bytes per RGB texel, 80 per
-1-channel texel, e.g. ~450 MB for a 1024² RGB image). ``eval_1_grad`` is that of
+magnification; a float32 walk of the footprint's boundary over the texels of the finest level
+where its short side is at most :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels and its perimeter
+at most :data:`~mitsuba_pbrt_tex.box.MAX_PERIMETER` (see :mod:`mitsuba_pbrt_tex.box`), with no
+table beside the pyramid (the "tables" are AD aliases of its buffer). ``eval_1_grad`` is that of
 ``trilinear``. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
 their pixel's footprint (every sample of a pixel sees its average; right for albedo and
 emission, not for roughness or bump maps, whose shading is not linear in the texture — use

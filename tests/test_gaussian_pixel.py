@@ -156,6 +156,20 @@ def reference_kernel(img, st, d0, d1, g, h, n=801):
     return (v * wgt[..., None]).sum((0, 1)) / wgt.sum()
 
 
+def _kernel_and_reference(mip, img, st, d0, d1, g, h, rfilter):
+    """(the package's pixel kernel, numpy integration) at the points ``st`` (n×2) for film
+    partials ``d0``, ``d1`` (uv per pixel) and perspective terms ``g``, ``h``."""
+    from mitsuba_pbrt_tex import gauss
+    n = len(st)
+    out = A(gauss.pixel_filter(
+        mip, mi.Point2f(st[:, 0], st[:, 1]), mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d0]),
+        mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d1]), mi.Float(np.full(n, g)),
+        mi.Float(np.full(n, h)), gauss.FilmKernel(0.5, 2.0, rfilter), True))
+    ref = np.array([reference_kernel(img.astype(np.float64), st[k], d0, d1, g, h)
+                    for k in range(n)])
+    return out, ref
+
+
 KERNEL_CASES = [
     # (d0, d1 in texels per pixel, g, h, tolerance): magnification, isotropic, anisotropic,
     # rotated, perspective (level 0 or finer), then minification onto MIP levels 1–2
@@ -190,12 +204,7 @@ def test_kernel_against_numpy_integration(case, rng):
     st = rng.random((n, 2)).astype(np.float32)
     d0s = np.array(d0, np.float32) / size
     d1s = np.array(d1, np.float32) / size
-    out = A(gauss.pixel_filter(
-        mip, mi.Point2f(st[:, 0], st[:, 1]), mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d0s]),
-        mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d1s]), mi.Float(np.full(n, g)),
-        mi.Float(np.full(n, h)), gauss.FilmKernel(0.5, 2.0, rfilter), True))
-    ref = np.array([reference_kernel(img.astype(np.float64), st[k], d0s, d1s, g, h)
-                    for k in range(n)])
+    out, ref = _kernel_and_reference(mip, img, st, d0s, d1s, g, h, rfilter)
     err = np.abs(out - ref).max()
     print(f'case {case}: max error {err:.2e}')
     assert err < tol, err
@@ -222,12 +231,7 @@ def test_kernel_on_a_coarsened_lattice_does_not_alias(rng):
     d0 = np.array([10.0, 0.0], np.float32) / size
     d1 = np.array([110.0, -330.0], np.float32) / size
     g, h = 0.0, 0.12
-    out = A(gauss.pixel_filter(
-        mip, mi.Point2f(st[:, 0], st[:, 1]), mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d0]),
-        mi.Vector2f(*[mi.Float(np.full(n, v)) for v in d1]), mi.Float(np.full(n, g)),
-        mi.Float(np.full(n, h)), gauss.FilmKernel(0.5, 2.0, rfilter), True))
-    ref = np.array([reference_kernel(img.astype(np.float64), st[k], d0, d1, g, h)
-                    for k in range(n)])
+    out, ref = _kernel_and_reference(mip, img, st, d0, d1, g, h, rfilter)
     err = np.abs(out - ref).max()
     print(f'coarsened lattice: max error {err:.2e}')
     assert err < 0.03, (out[:, 0], ref[:, 0])

@@ -42,6 +42,17 @@ def sensors():
     }
 
 
+def _with_sensor(d, kind):
+    """The scene ``d`` loaded with a sensor of ``kind`` (the irradiance meter on a disk above
+    the plane, facing down)."""
+    if kind == 'irradiancemeter':
+        d['meter'] = {'type': 'disk', 'to_world': T().translate([0, 0, 1]).rotate([1, 0, 0], 180)
+                      .scale(0.2), 'sensor': {'type': 'irradiancemeter', 'film': BOX1}}
+    else:
+        d['sensor'] = sensors()[kind]
+    return mi.load_dict(d)
+
+
 def _scene(kind, integrator, texture):
     plane = {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -20),
              'bsdf': {'type': 'diffuse', 'reflectance': texture}}
@@ -49,12 +60,7 @@ def _scene(kind, integrator, texture):
          'sky': {'type': 'constant', 'radiance': {'type': 'rgb', 'value': [0.6, 0.7, 0.9]}},
          'wall': {'type': 'rectangle', 'to_world': T().translate([0, 1, 0.5]).rotate([1, 0, 0], 90),
                   'bsdf': {'type': 'diffuse', 'reflectance': texture}}}
-    if kind == 'irradiancemeter':
-        d['meter'] = {'type': 'disk', 'to_world': T().translate([0, 0, 1]).rotate([1, 0, 0], 180)
-                      .scale(0.2), 'sensor': {'type': 'irradiancemeter', 'film': BOX1}}
-    else:
-        d['sensor'] = sensors()[kind]
-    return mi.load_dict(d)
+    return _with_sensor(d, kind)
 
 
 KINDS = list(sensors())
@@ -80,12 +86,7 @@ def _emitting_plane(kind, radiance):
     d = {'type': 'scene', 'integrator': {'type': 'pbrt_path', 'max_depth': 1},
          'plane': {'type': 'rectangle', 'to_world': T().rotate([1, 0, 0], -20).scale(3),
                    'emitter': {'type': 'area', 'radiance': radiance}}}
-    if kind == 'irradiancemeter':
-        d['meter'] = {'type': 'disk', 'to_world': T().translate([0, 0, 1]).rotate([1, 0, 0], 180)
-                      .scale(0.2), 'sensor': {'type': 'irradiancemeter', 'film': BOX1}}
-    else:
-        d['sensor'] = sensors()[kind]
-    return mi.load_dict(d)
+    return _with_sensor(d, kind)
 
 
 @pytest.mark.parametrize('kind', KINDS)
