@@ -18,12 +18,37 @@ def test_render_benchmark_quick(tmp_path):
     assert all(np.isfinite(float(r['rmse'])) and float(r['time_s']) > 0 for r in table)
     assert any('equal-error speed-up' in s for s in summary)
     assert any(r['method'].startswith('Mitsuba') for r in table)
+    assert any('by distance from the far edge' in s for s in summary)
+    assert any('pbrt_checkerboard area, footprint pixel' in s for s in summary)
     # the reference is cached: a second run does not render it again
     lines.clear()
     render.run(['grazing-checker'], quick=True, out_dir=str(tmp_path), log=lines.append)
     assert not any('reference:' in line for line in lines)
     pytest.importorskip('matplotlib')
     assert (tmp_path / 'charts.png').exists()
+
+
+def test_far_edge_rows_and_errors():
+    """Distance from a far edge is counted per column from its topmost textured pixel; the
+    edge rows' and interior's RMSE, the interior's noise and the edge share follow from an
+    image whose error is known row by row."""
+    from mitsuba_pbrt_tex.bench.render import EDGE_ROWS, Reference, edge_errors, rows_below_edge
+    mask = np.zeros((8, 4), bool)
+    mask[2:, :2] = True                     # a plane whose far edge is row 2 in columns 0-1 ...
+    mask[4:, 2:] = True                     # ... and row 4 in columns 2-3
+    below = rows_below_edge(mask)
+    assert below[2, 0] == 0 and below[4, 0] == 2 and below[4, 3] == 0 and below[7, 3] == 3
+    assert (below[~mask] == -1).all()
+    ref = Reference(np.zeros((8, 4, 3)), np.full((8, 4, 3), 0.01 ** 2))
+    img = np.zeros((8, 4, 3))
+    img[below == 1] = 0.3                   # error only in the second row from the edge ...
+    img[below == EDGE_ROWS] = 0.1           # ... and in the first interior row
+    e = edge_errors(img, ref, below)
+    assert e.by_row == pytest.approx([0.0, 0.3, 0.0])
+    interior = (below >= EDGE_ROWS).sum()
+    assert e.interior == pytest.approx(np.sqrt(0.01 * 4 / interior))
+    assert e.interior_noise == pytest.approx(0.01)
+    assert e.edge_share == pytest.approx(0.09 * 4 / (0.09 * 4 + 0.01 * 4))
 
 
 def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path):

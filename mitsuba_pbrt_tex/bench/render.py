@@ -64,6 +64,7 @@ class Case:
     inputs: tuple = ()                   # files outside scenes/ the scene reads (cache key)
     at_builtin_spp: tuple = ()           # also report speed-ups at the built-in's errors there
     res: tuple | None = None             # the scene's own image size (full runs)
+    far_edge: bool = False               # a plane ending in the image: report error by row
 
 
 def _checker_cases(cells):
@@ -71,6 +72,13 @@ def _checker_cases(cells):
     ours = [Method('pbrt_checkerboard none (point)', {**pbrt, 'aamode': 'none'}, True),
             Method('pbrt_checkerboard box', {**pbrt, 'aamode': 'box'}, True),
             Method('pbrt_checkerboard triangle', {**pbrt, 'aamode': 'triangle'}, True),
+            # the exact average over the footprint: around the sample, and the pixel's
+            Method('pbrt_checkerboard area', {**pbrt, 'aamode': 'area'}, True, 'footprint'),
+            Method('pbrt_checkerboard area, footprint pixel',
+                   {**pbrt, 'aamode': 'area', 'footprint': 'pixel'}, True, 'footprint'),
+            Method('pbrt_checkerboard area, footprint pixel, silhouette_spp 16',
+                   {**pbrt, 'aamode': 'area', 'footprint': 'pixel', 'silhouette_spp': '16'},
+                   True, 'footprint'),
             Method('pbrt_supersample 16 (point checker)', {
                 'texture': 'tex/checker_supersample.xml', 'samples': '16', 'cells': str(cells)}, True)]
     # Mitsuba's checkerboard has 2×2 cells per unit of its to_uv
@@ -129,18 +137,18 @@ def cases(mitsuba_data=None, work_dir='bench-out') -> list[Case]:
     out.append(Case('grazing-checker', 'grazing.xml',
                     'plane to the horizon, procedural checkerboard (cells of 0.2 world units)',
                     {'texture': 'tex/checker_pbrt.xml', 'cells': '2000', 'aamode': 'none',
-                     'integrator': 'path'}, b + o, flat))
+                     'integrator': 'path'}, b + o, flat, far_edge=True))
     b, o = _image_methods('../textures/checker.png', '125', pixel=True)
     out.append(Case('grazing-checker-image', 'grazing.xml',
                     'plane to the horizon, checker image (16×16 checks per tile, 125×125 tiles: '
                     'the same 0.2-unit cells)',
                     {'texture': 'tex/image_bitmap.xml', 'tiles': '125', 'integrator': 'path'},
-                    b + o, flat))
+                    b + o, flat, far_edge=True))
     b, o = _image_methods('../textures/zoneplate.png', '100', pixel=True)
     out.append(Case('grazing-zoneplate', 'grazing.xml',
                     'plane to the horizon, zone-plate image (100×100 tiles)',
                     {'texture': 'tex/image_bitmap.xml', 'image': '../textures/zoneplate.png',
-                     'tiles': '100', 'integrator': 'path'}, b + o, flat))
+                     'tiles': '100', 'integrator': 'path'}, b + o, flat, far_edge=True))
     mapping_ours = [Method(f'pbrt_imagemap {f}', {'filter': f.split()[0], **extra}, True, grp)
                     for f, extra, grp in (('bilinear', {}, ''),
                                           ('trilinear v3', {'trilinearwidth': 'v3'}, 'trilinear-width'),
@@ -169,7 +177,7 @@ def cases(mitsuba_data=None, work_dir='bench-out') -> list[Case]:
     out.append(Case('grazing-checker-image-gaussian', 'grazing.xml',
                     'the grazing checker-image plane through Mitsuba\'s default Gaussian film',
                     {'texture': 'tex/image_bitmap.xml', 'tiles': '125', 'integrator': 'path',
-                     **gauss}, b + o, flat))
+                     **gauss}, b + o, flat, far_edge=True))
     out.append(envlit_case(mitsuba_data, work_dir, flat))
     return out
 
@@ -311,25 +319,38 @@ def _case_hash(case: Case, res, spp) -> str:
     return h.hexdigest()[:16]
 
 
-def reference(case: Case, res, spp, cache_dir, log):
-    """(image, own RMSE) of the case's reference, from the cache when possible."""
+@dataclass
+class Reference:
+    """A case's reference image and its own error, per pixel and channel: the squared half
+    difference of its two independent halves (an unbiased estimate of the mean's squared
+    error), so that the noise of any region can be read off."""
+    image: np.ndarray
+    noise_sq: np.ndarray
+
+    def noise(self, region=None) -> float:
+        sq = self.noise_sq if region is None else self.noise_sq[region]
+        return float(np.sqrt(np.mean(sq))) if sq.size else 0.0
+
+
+def reference(case: Case, res, spp, cache_dir, log) -> Reference:
+    """The case's reference, from the cache when possible."""
     import mitsuba as mi
     from ..outputs import write_exr
     key = _case_hash(case, res, spp)
     path = os.path.join(cache_dir, f'ref-{case.name}-{key}.npz')
     if os.path.exists(path):
         data = np.load(path)
-        return data['image'], float(data['noise'])
+        return Reference(data['image'], data['noise_sq'])
     log(f'  reference: {spp} spp in two halves (cached afterwards)')
     scene = _load(case, case.reference, res)
     halves = [_render(scene, spp // 2, seed=900 + k) for k in range(2)]
     image = 0.5 * (halves[0] + halves[1])
-    noise = float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2)) / 2)
+    noise_sq = ((halves[0] - halves[1]) / 2) ** 2
     os.makedirs(cache_dir, exist_ok=True)
-    np.savez_compressed(path, image=image, noise=noise)
+    np.savez_compressed(path, image=image, noise_sq=noise_sq)
     write_exr(os.path.join(cache_dir, f'ref-{case.name}-{key}.exr'), image.astype(np.float32))
     del mi
-    return image, noise
+    return Reference(image, noise_sq)
 
 
 def texture_mask(case: Case, res):
@@ -338,6 +359,42 @@ def texture_mask(case: Case, res):
     a = _render(_load(case, {**case.mask[0], 'integrator': 'path'}, res), 4, seed=5)
     b = _render(_load(case, {**case.mask[1], 'integrator': 'path'}, res), 4, seed=5)
     return np.abs(a - b).sum(-1) > 1e-4
+
+
+#: Rows below a far edge counted as the edge's (they hold its silhouette pixels); the rest of
+#: the plane is its interior.
+EDGE_ROWS = 3
+
+
+def rows_below_edge(mask):
+    """Per pixel of the textured ``mask``, how many rows it lies below the plane's far edge in
+    its column (the column's topmost textured pixel); -1 off the plane."""
+    h = mask.shape[0]
+    top = np.argmax(mask, axis=0)
+    below = np.arange(h)[:, None] - top[None, :]
+    return np.where(mask, below, -1)
+
+
+@dataclass
+class EdgeErrors:
+    """RMSE next to a far edge: in each of the first :data:`EDGE_ROWS` rows, in the interior
+    below them, that interior's reference noise, and the edge rows' share of the squared error
+    over the plane."""
+    by_row: list
+    interior: float
+    interior_noise: float
+    edge_share: float
+
+
+def edge_errors(img, ref: Reference, below) -> EdgeErrors:
+    sq = ((img - ref.image) ** 2).mean(-1)
+    by_row = [float(np.sqrt(sq[below == k].mean())) if (below == k).any() else 0.0
+              for k in range(EDGE_ROWS)]
+    inner = below >= EDGE_ROWS
+    edge = (below >= 0) & ~inner
+    total = sq[below >= 0].sum()
+    return EdgeErrors(by_row, float(np.sqrt(sq[inner].mean())), ref.noise(inner),
+                      float(sq[edge].sum() / total) if total > 0 else 0.0)
 
 
 def errors(img, ref, mask):
@@ -396,8 +453,9 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
     for case in selected:
         log(f'[{case.name}] {case.description}')
         res = base_res if quick or case.res is None else case.res
-        ref, ref_noise = reference(case, res, ref_spp, cache_dir, log)
+        ref = reference(case, res, ref_spp, cache_dir, log)
         mask = texture_mask(case, res)
+        below = rows_below_edge(mask) if case.far_edge else None
         for m in case.methods:
             done += 1
             scene = _load(case, m.params, res)
@@ -406,14 +464,16 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
             first = time.perf_counter() - t0
             compile_s = None
             for spp in (ours_spp if m.ours else builtin_spp):
-                times, errs = [], []
+                times, errs, edges = [], [], []
                 for r in range(repeats):
                     dr.sync_thread()
                     t0 = time.perf_counter()
                     img = _render(scene, spp, seed=10 + r)
                     dr.sync_thread()
                     times.append(time.perf_counter() - t0)
-                    errs.append(errors(img, ref, mask))
+                    errs.append(errors(img, ref.image, mask))
+                    if below is not None:
+                        edges.append(edge_errors(img, ref, below))
                 e = np.mean(np.array(errs), axis=0)
                 t = float(np.median(times))
                 if compile_s is None:               # first call minus a warm call, both 1 spp
@@ -421,14 +481,45 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
                 rows.append(dict(scene=case.name, method=m.name, ours=m.ours, group=m.group,
                                  spp=spp, time_s=t, compile_s=compile_s,
                                  rmse=e[0], rmse_textured=e[1], rel_error=e[2],
-                                 reference_noise=ref_noise))
+                                 reference_noise=ref.noise(), **_edge_columns(edges)))
                 log(f'  [{done}/{total}] {m.name:42s} spp {spp:4d}  {t * 1e3:8.1f} ms  '
                     f'RMSE {e[0]:.5f} (textured {e[1]:.5f})  '
                     f'elapsed {time.perf_counter() - t_start:6.0f} s')
-        summary += summarize(case, rows) + at_builtin_errors(case, rows)
+        summary += (summarize(case, rows) + far_edge_lines(case, rows)
+                    + at_builtin_errors(case, rows))
     summary += compare_groups(rows)
     write_outputs(rows, summary, out_dir, base_res, ref_spp, variant, repeats)
     return rows, summary
+
+
+def _edge_columns(edges) -> dict:
+    """The far-edge figures of repeated renders, averaged (empty without a far edge)."""
+    if not edges:
+        return dict(edge_rows='', rmse_interior='', interior_noise='', edge_share='')
+    return dict(edge_rows=' '.join(f'{np.mean([e.by_row[k] for e in edges]):.4f}'
+                                   for k in range(EDGE_ROWS)),
+                rmse_interior=float(np.mean([e.interior for e in edges])),
+                interior_noise=edges[0].interior_noise,
+                edge_share=float(np.mean([e.edge_share for e in edges])))
+
+
+def far_edge_lines(case: Case, rows) -> list[str]:
+    """Where a plane ends in the image: the footprint methods' interior error against the
+    reference noise there, and what the edge rows hold, at 1 spp."""
+    if not case.far_edge:
+        return []
+    lines = []
+    for r in rows:
+        if r['scene'] == case.name and r['spp'] == 1 and r['group'] == 'footprint':
+            ratio = r['rmse_interior'] / max(r['interior_noise'], 1e-12)
+            lines.append(f'  - *{r["method"]}* at 1 spp: interior (≥ {EDGE_ROWS} rows below the '
+                         f'far edge) RMSE {r["rmse_interior"]:.4f} = **{ratio:.1f}×** the '
+                         f'reference noise there ({r["interior_noise"]:.4f}); the first '
+                         f'{EDGE_ROWS} rows {r["edge_rows"]} ({100 * r["edge_share"]:.0f}% of '
+                         f'the error²)')
+    if lines:
+        lines.insert(0, f'- **{case.name}**, by distance from the far edge:')
+    return lines
 
 
 def summarize(case: Case, rows) -> list[str]:
@@ -524,7 +615,8 @@ def compare_groups(rows) -> list[str]:
 
 def write_outputs(rows, summary, out_dir, res, ref_spp, variant, repeats):
     keys = ['scene', 'method', 'ours', 'group', 'spp', 'time_s', 'compile_s', 'rmse',
-            'rmse_textured', 'rel_error', 'reference_noise']
+            'rmse_textured', 'rel_error', 'reference_noise', 'rmse_interior', 'interior_noise',
+            'edge_rows', 'edge_share']
     with open(os.path.join(out_dir, 'results.csv'), 'w', newline='') as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
