@@ -43,9 +43,11 @@ the centre ray, ``|g|`` or ``|h|`` ≥ 1 (the pixel sees the plane's horizon), n
 use the sample-centred context.
 
 Limits: ``perspective`` sensors (a pinhole: the aperture sample plays no role), box or Gaussian
-film filter (``pbrt_path`` refuses the others). A sample within ~1e-5 pixel of a pixel edge can
-be assigned to the neighbouring pixel by float32 rounding of its hit point (box filter; the
-Gaussian path counts it where the texture centred).
+film filter (``pbrt_path`` refuses the others). A hit's film position, found again from the hit
+point, carries ~1e-5 pixel of float32 rounding: on a box film ``pbrt_path`` keeps its camera
+samples :data:`EDGE_MARGIN` inside their pixel (:func:`inset_camera_rays`), so that no sample is
+assigned to the neighbouring pixel (the Gaussian path counts each sample where its texture
+centred).
 """
 
 from __future__ import annotations
@@ -64,6 +66,13 @@ CAMERA_TOLERANCE = 1e-4
 #: The Gaussian kernel holds where the perspective terms keep 1 + a·g + b·h above 1 - this over
 #: the filter's support.
 PERSPECTIVE_LIMIT = 0.5
+#: Box-film camera samples are kept this many pixels inside their pixel's edges.
+EDGE_MARGIN = 1e-3
+#: A box-film pixel whose larger perspective term exceeds this is cut into strips across it, each
+#: a pixel footprint of its own with a term at most this (:func:`parts`).
+STRIP_PERSPECTIVE = 0.125
+#: At most this many strips (a kernel holds this many lookups of an opting-in texture).
+MAX_STRIPS = 4
 
 
 @dataclass
@@ -99,6 +108,22 @@ def _film_position(sensor, si):
     it.p, it.time = p, si.time
     ds, _ = sensor.sample_direction(it, mi.Point2f(0.5), camera_hit)
     return camera_hit, mi.Point2f(ds.uv)
+
+
+def inset_camera_rays(sensor, ray, pixel_pos):
+    """``ray`` (Mitsuba's camera rays of a box film, drawn in pixels ``pixel_pos``, film
+    coordinates), moved where needed to a film position :data:`EDGE_MARGIN` inside the pixel
+    (0.4% of the samples, by at most that margin): a hit's film position, found from the hit
+    point, then falls in the pixel its sample was drawn in."""
+    it = dr.zeros(mi.Interaction3f, dr.width(ray.o))
+    it.p, it.time = ray.o + ray.d, ray.time
+    ds, _ = sensor.sample_direction(it, mi.Point2f(0.5))
+    corner = mi.Point2f(pixel_pos) - mi.ScalarVector2f(sensor.film().crop_offset())
+    uv = mi.Point2f(ds.uv)
+    inside = dr.clip(uv, corner + EDGE_MARGIN, corner + (1 - EDGE_MARGIN))
+    moved = dr.any(inside != uv) & dr.all(dr.isfinite(uv))
+    moved_ray, _ = film_ray(sensor, inside, ray.time, moved)
+    return dr.select(moved, moved_ray, ray)
 
 
 def _pixel_of(uv, pixels):
@@ -182,6 +207,130 @@ def published_pixels():
     published): what tells a texture to filter the film's kernel (:func:`filter_context`)."""
     scope = render_scope.current()
     return None if scope is None else scope.pixels
+
+
+@dataclass
+class _Projective:
+    """``c + (a·e0 + b·e1) / (1 + a·g + b·h)`` over ``a, b ∈ [-1/2, 1/2]``: a pixel's footprint
+    in one space (uv or world), per lane."""
+
+    c: object
+    e0: object
+    e1: object
+    g: object
+    h: object
+
+    def strip(self, along_b, n, k) -> '_Projective':
+        """Strip ``k`` of ``n`` equal strips of the pixel, cut across ``b`` where ``along_b``
+        and across ``a`` elsewhere, as a footprint of the same form. Across ``b``: with ``s =
+        1 + b_k·h`` at the strip's centre ``b_k``, centre ``c + b_k·e1/s``, edges ``(e0 -
+        g·b_k·e1/s)/s`` and ``e1/(n·s²)``, terms ``g/s`` and ``h/(n·s)``; across ``a`` the
+        same with the roles of (a, e0, g) and (b, e1, h) swapped."""
+        mid = -0.5 + (k + 0.5) / n
+        e_cut, e_other = dr.select(along_b, self.e1, self.e0), dr.select(along_b, self.e0, self.e1)
+        t_cut, t_other = dr.select(along_b, self.h, self.g), dr.select(along_b, self.g, self.h)
+        inv = dr.rcp(1 + mid * t_cut)
+        centre = self.c + e_cut * (mid * inv)
+        other = (e_other - e_cut * (t_other * mid * inv)) * inv
+        cut = e_cut * (inv * inv / n)
+        t_o, t_c = t_other * inv, t_cut * inv / n
+        return _Projective(centre, dr.select(along_b, other, cut), dr.select(along_b, cut, other),
+                           dr.select(along_b, t_o, t_c), dr.select(along_b, t_c, t_o))
+
+    def centroid(self):
+        """The screen-weighted centroid, ``c - (g·e0 + h·e1)/12`` (see the module docstring)."""
+        return self.c - (self.e0 * self.g + self.e1 * self.h) * (1.0 / 12.0)
+
+
+@dataclass
+class PixelPart:
+    """One lookup of a pixel's average: the context of a part of the pixel (the whole pixel, a
+    strip of it, or the sample's own where no pixel footprint holds), its share of the pixel
+    and where it is looked up."""
+
+    context: TextureEvalContext
+    weight: object
+    active: object
+
+
+def _part_context(ctx, uv: _Projective, p: _Projective, ok) -> TextureEvalContext:
+    """The parallelogram of footprint ``uv`` (world space ``p``) on its centroid, where ``ok``;
+    ``ctx`` elsewhere."""
+    return TextureEvalContext(
+        p=dr.select(ok, p.centroid(), ctx.p), dpdx=dr.select(ok, p.e0, ctx.dpdx),
+        dpdy=dr.select(ok, p.e1, ctx.dpdy), n=ctx.n, uv=dr.select(ok, uv.centroid(), ctx.uv),
+        dudx=dr.select(ok, uv.e0.x, ctx.dudx), dudy=dr.select(ok, uv.e1.x, ctx.dudy),
+        dvdx=dr.select(ok, uv.e0.y, ctx.dvdx),
+        dvdy=dr.select(ok, uv.e1.y, ctx.dvdy))
+
+
+@dataclass
+class PixelStrips:
+    """A box-film pixel's footprint cut into ``n`` strips (per lane; see :func:`strips`)."""
+
+    uv: _Projective
+    p: _Projective
+    along_b: object     # cut across b (else across a)
+    n: object           # how many (1 where no pixel footprint holds)
+    ok: object          # where the pixel footprint holds
+
+    def part(self, ctx, k) -> PixelPart:
+        """Strip ``k`` (a per-lane UInt32 or an int) as a lookup; where no footprint holds the
+        sample's own ``ctx``, once (``k`` = 0)."""
+        here = self.ok & (k < self.n)
+        uv_k = self.uv.strip(self.along_b, self.n, k)
+        p_k = self.p.strip(self.along_b, self.n, k)
+        weight = dr.select(self.ok, dr.rcp(self.n), 1.0)
+        return PixelPart(_part_context(ctx, uv_k, p_k, here), weight,
+                         here | (~self.ok & (k == 0)))
+
+
+def strips(si):
+    """The strips whose average is the pixel's average for an opting-in texture, or None where
+    ``pbrt_path`` publishes no box-film render (every lane then looks up the sample's own
+    context). For camera hits the pixel's footprint (exact on the tangent plane: a projective
+    image of the pixel) is cut into ``n`` equal strips across its larger perspective term,
+    ``n`` the fewest that bring every strip's term to at most :data:`STRIP_PERSPECTIVE` (at
+    most :data:`MAX_STRIPS`), each looked up as the parallelogram on its screen-weighted
+    centroid, with weight ``1/n``. A parallelogram misses the footprint's perspective at second
+    order in its terms (a trapezoid with a weight growing towards its far side): next to a
+    plane's far edge, where a pixel spans much more texture on its far side than on its near
+    one, the strips keep that error at the strips' terms."""
+    scope = render_scope.current()
+    if scope is None or scope.pixels is not None:
+        return None
+    fp = pixel_footprint(scope.sensor, si)
+    term = dr.maximum(dr.abs(fp.g), dr.abs(fp.h))
+    n = dr.clip(dr.ceil(term * (1.0 / STRIP_PERSPECTIVE)), 1, MAX_STRIPS)
+    return PixelStrips(_Projective(fp.uv_c, fp.d0, fp.d1, fp.g, fp.h),
+                       _Projective(fp.p_c, fp.dp0, fp.dp1, fp.g, fp.h),
+                       dr.abs(fp.h) >= dr.abs(fp.g), dr.select(fp.ok, n, 1), fp.ok)
+
+
+def pixel_average(si, lookup, value_type, active=True):
+    """``Σ weight · lookup(context, active)`` over the pixel's :func:`strips` (values of
+    ``value_type``) — a texture's pixel-footprint value from its lookup of one context; the
+    sample's own lookup where no box-film render is published."""
+    active = mi.Bool(active)
+    ctx = TextureEvalContext.from_si(si)
+    cut = strips(si)
+    if cut is None:
+        return lookup(ctx, active)
+    return _strip_sum(cut, ctx, lookup, value_type, active)
+
+
+@dr.syntax
+def _strip_sum(cut: PixelStrips, ctx, lookup, value_type, active):
+    """The strips' weighted lookups, in a symbolic loop (one lookup in the kernel, traced
+    once)."""
+    total = dr.zeros(value_type, dr.width(active))
+    k = mi.Float(0)
+    while dr.hint(active & (k < cut.n), label='pixel footprint: strips', exclude=[cut, ctx],
+                  max_iterations=-1):              # a sum: Dr.Jit's fast reverse mode
+        part = cut.part(ctx, k)
+        total += lookup(part.context, active) * part.weight
+        k += 1
+    return total
 
 
 def context(si) -> TextureEvalContext:

@@ -61,19 +61,30 @@ class Plugin(PbrtTexture):
         return PbrtTexture.context(self, si)
 
     def weight(self, si):
-        """Weight of tex2 at each lookup."""
-        tc = self.mapping.map(self.context(si))
-        closed = 'box' if self.aamode == 'area' else self.aamode
+        """Weight of tex2 at each lookup (``area``: the pixel's average, strip by strip, see
+        :func:`mitsuba_pbrt_tex.pixel.pixel_average`)."""
+        if self.dimension == 2 and self.aamode == 'area':
+            return pixel.pixel_average(si, lambda ctx, active: self._weight_2d(ctx), mi.Float)
         if self.dimension == 2:
-            w = tex2_weight((tc.st.x, tc.st.y),
-                            (_width(tc.dsdx, tc.dsdy), _width(tc.dtdx, tc.dtdy)), closed)
-            if self.aamode == 'area':
-                mean, ok = area_mean((tc.st.x, tc.st.y), (tc.dsdx, tc.dtdx), (tc.dsdy, tc.dtdy))
-                w = dr.select(ok, 0.5 - 0.5 * mean, w)
-            return w
+            return self._weight_2d(self.context(si))
+        tc = self.mapping.map(self.context(si))
         return tex2_weight((tc.p.x, tc.p.y, tc.p.z),
                            (_width(tc.dpdx.x, tc.dpdy.x), _width(tc.dpdx.y, tc.dpdy.y),
-                            _width(tc.dpdx.z, tc.dpdy.z)), closed)
+                            _width(tc.dpdx.z, tc.dpdy.z)), self._closed_form())
+
+    def _closed_form(self) -> str:
+        """The closed form of the mode (``area`` falls back to ``box`` where it does not hold,
+        and in 3D)."""
+        return 'box' if self.aamode == 'area' else self.aamode
+
+    def _weight_2d(self, ctx):
+        tc = self.mapping.map(ctx)
+        w = tex2_weight((tc.st.x, tc.st.y),
+                        (_width(tc.dsdx, tc.dsdy), _width(tc.dtdx, tc.dtdy)), self._closed_form())
+        if self.aamode == 'area':
+            mean, ok = area_mean((tc.st.x, tc.st.y), (tc.dsdx, tc.dtdx), (tc.dsdy, tc.dtdy))
+            w = dr.select(ok, 0.5 - 0.5 * mean, w)
+        return w
 
     def evaluate(self, si, kind, active):
         w = self.weight(si)

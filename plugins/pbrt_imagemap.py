@@ -302,12 +302,15 @@ class Plugin(PbrtTexture):
 
     def _value(self, si, active):
         pixels = pixel.published_pixels() if self.filter_name == 'box' else None
+        pyr, tables = self._state()
         if pixels is not None:
             v = self._film_filtered(si, active, pixels) * self.scale
+        elif self.filter_name == 'box':         # the pixel's average, strip by strip
+            v = pixel.pixel_average(
+                si, lambda ctx, act: self.filter(pyr, self.mapping.map(ctx), act, tables),
+                mi.Color3f if self.channels == 3 else mi.Float, active) * self.scale
         else:
-            tc = self.mapping.map(self.context(si))
-            pyr, tables = self._state()
-            v = self.filter(pyr, tc, active, tables) * self.scale
+            v = self.filter(pyr, self.mapping.map(self.context(si)), active, tables) * self.scale
         if self.invert:
             v = dr.maximum(0, 1 - v)
         return v

@@ -209,6 +209,9 @@ class Plugin:
         ray, weight, pos = self._pbrt_base.sample_rays(self, scene, scope.sensor, sampler)
         if scope.pixels is not None:
             ray, weight, pos = scope.pixels.rays(scope.sensor, ray, pos, sampler.sample_count())
+        elif self.footprint_mode == 'pixel' and scope.sensor.class_name() in PIXEL_SENSORS and \
+                scope.sensor.film().rfilter().class_name() == 'BoxFilter':
+            ray = pixel.inset_camera_rays(scope.sensor, ray, pos)
         scope.positions = pos         # box filter: the sample's pixel; Gaussian: its centre
         self._handover = scope
         return ray, weight, pos
