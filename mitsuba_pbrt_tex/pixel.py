@@ -69,7 +69,7 @@ PERSPECTIVE_LIMIT = 0.5
 #: Box-film camera samples are kept this many pixels inside their pixel's edges.
 EDGE_MARGIN = 1e-3
 #: A box-film pixel whose larger perspective term exceeds this is cut into strips across it, each
-#: a pixel footprint of its own with a term at most this (:func:`parts`).
+#: a pixel footprint of its own with a term at most this (:func:`strips`).
 STRIP_PERSPECTIVE = 0.125
 #: At most this many strips (a kernel holds this many lookups of an opting-in texture).
 MAX_STRIPS = 4
