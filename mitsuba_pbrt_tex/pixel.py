@@ -244,13 +244,11 @@ class _Projective:
 
 @dataclass
 class PixelPart:
-    """One lookup of a pixel's average: the context of a part of the pixel (the whole pixel, a
-    strip of it, or the sample's own where no pixel footprint holds), its share of the pixel
-    and where it is looked up."""
+    """One lookup of a pixel's average: the context of a part of the pixel (a strip of it, or
+    the sample's own where no pixel footprint holds) and its share of the pixel."""
 
     context: TextureEvalContext
     weight: object
-    active: object
 
 
 def _part_context(ctx, uv: _Projective, p: _Projective, ok) -> TextureEvalContext:
@@ -275,14 +273,12 @@ class PixelStrips:
     ok: object          # where the pixel footprint holds
 
     def part(self, ctx, k) -> PixelPart:
-        """Strip ``k`` (a per-lane UInt32 or an int) as a lookup; where no footprint holds the
-        sample's own ``ctx``, once (``k`` = 0)."""
-        here = self.ok & (k < self.n)
+        """Strip ``k`` (per lane, ``k < n``) as a lookup; where no footprint holds (``n`` = 1)
+        the sample's own ``ctx``."""
         uv_k = self.uv.strip(self.along_b, self.n, k)
         p_k = self.p.strip(self.along_b, self.n, k)
-        weight = dr.select(self.ok, dr.rcp(self.n), 1.0)
-        return PixelPart(_part_context(ctx, uv_k, p_k, here), weight,
-                         here | (~self.ok & (k == 0)))
+        return PixelPart(_part_context(ctx, uv_k, p_k, self.ok),
+                         dr.select(self.ok, dr.rcp(self.n), 1.0))
 
 
 def strips(si):
@@ -345,12 +341,5 @@ def context(si) -> TextureEvalContext:
     if scope is None or scope.pixels is not None:
         return ctx
     fp = pixel_footprint(scope.sensor, si)
-    ok = fp.ok
-    uv = fp.uv_c - (fp.d0 * fp.g + fp.d1 * fp.h) * (1.0 / 12.0)
-    p = fp.p_c - (fp.dp0 * fp.g + fp.dp1 * fp.h) * (1.0 / 12.0)
-    return TextureEvalContext(
-        p=dr.select(ok, p, ctx.p), dpdx=dr.select(ok, fp.dp0, ctx.dpdx),
-        dpdy=dr.select(ok, fp.dp1, ctx.dpdy), n=ctx.n,
-        uv=dr.select(ok, uv, ctx.uv),
-        dudx=dr.select(ok, fp.d0.x, ctx.dudx), dudy=dr.select(ok, fp.d1.x, ctx.dudy),
-        dvdx=dr.select(ok, fp.d0.y, ctx.dvdx), dvdy=dr.select(ok, fp.d1.y, ctx.dvdy))
+    return _part_context(ctx, _Projective(fp.uv_c, fp.d0, fp.d1, fp.g, fp.h),
+                         _Projective(fp.p_c, fp.dp0, fp.dp1, fp.g, fp.h), fp.ok)

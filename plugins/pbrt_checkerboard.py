@@ -53,13 +53,6 @@ class Plugin(PbrtTexture):
             self.describe(name, getattr(self, name))
         self.describe('mapping', self.mapping.describe())
 
-    def context(self, si):
-        """``area`` (2D) filters the pixel's footprint at camera hits under ``pbrt_path``
-        ``footprint="pixel"``; the other modes stay sample-centred."""
-        if self.aamode == 'area' and self.dimension == 2:
-            return pixel.context(si)
-        return PbrtTexture.context(self, si)
-
     def weight(self, si):
         """Weight of tex2 at each lookup (``area``: the pixel's average, strip by strip, see
         :func:`mitsuba_pbrt_tex.pixel.pixel_average`)."""

@@ -304,7 +304,7 @@ class Plugin(PbrtTexture):
         pixels = pixel.published_pixels() if self.filter_name == 'box' else None
         pyr, tables = self._state()
         if pixels is not None:
-            v = self._film_filtered(si, active, pixels) * self.scale
+            v = self._film_filtered(si, active, pixels, pyr, tables) * self.scale
         elif self.filter_name == 'box':         # the pixel's average, strip by strip
             v = pixel.pixel_average(
                 si, lambda ctx, act: self.filter(pyr, self.mapping.map(ctx), act, tables),
@@ -315,14 +315,13 @@ class Plugin(PbrtTexture):
             v = dr.maximum(0, 1 - v)
         return v
 
-    def _film_filtered(self, si, active, pixels):
+    def _film_filtered(self, si, active, pixels, pyr, tables):
         """``pbrt_path`` ``footprint="pixel"`` with a Gaussian film: the film filter's kernel
         around the pixel centre (:func:`mitsuba_pbrt_tex.gauss.pixel_filter`) for camera hits,
         the sample-centred box elsewhere."""
         active = mi.Bool(active)
         centre, g, h, ok = pixel.filter_context(si, pixels)
         tc = self.mapping.map(centre)
-        pyr, tables = self._state()
         kernel = gauss.pixel_filter(MIPMap(pyr, self.wrap), tc.st,
                                     mi.Vector2f(tc.dsdx, tc.dtdx), mi.Vector2f(tc.dsdy, tc.dtdy),
                                     g, h, pixels, active & ok)

@@ -314,9 +314,14 @@ def _case_hash(case: Case, res, spp) -> str:
         with open(f, 'rb') as fh:
             h.update(fh.read())
     h.update(json.dumps([case.xml, case.reference, list(res), spp]).encode())
+    h.update(REFERENCE_FORMAT.encode())
     from .. import __version__
     h.update(__version__.encode())
     return h.hexdigest()[:16]
+
+
+#: What a cached reference file holds (part of its key: older caches are rendered again).
+REFERENCE_FORMAT = 'image+noise_sq'
 
 
 @dataclass
