@@ -570,3 +570,21 @@ def test_box_film_samples_stay_in_the_pixel_they_were_drawn_in(rng):
         wrong = A(hit) & np.any(np.floor(A(uv)) != corners, axis=1)
         print(f'inset {moved}: {wrong.sum()} of {A(hit).sum()} hits decode to another pixel')
         assert (wrong.sum() == 0) == moved
+
+
+@pytest.mark.parametrize('forward', [False, True])
+def test_texel_gradients_through_pixel_strips(forward, rng):
+    """Texel gradients where pixels are looked up as strips (next to a far edge: the strips'
+    symbolic loop, a sum, in Dr.Jit's reverse and forward modes) against central finite
+    differences at the gradient seed (the project's check_gradient, 2%); the scene must have
+    pixels with more than one strip for the test to mean anything."""
+    import test_gradients as tg
+    from mitsuba_pbrt_tex import pixel
+    d = far_edge_scene(box_texture(rng, size=16, tiles=4.0))
+    d['sensor']['film'].update(width=tg.RES, height=tg.RES)
+    scene = mi.load_dict(d)
+    ys, xs = np.mgrid[0:tg.RES, 0:tg.RES]
+    si = cast(scene, np.stack([(xs.ravel() + 0.5) / tg.RES, (ys.ravel() + 0.5) / tg.RES], 1))
+    fp = pixel.pixel_footprint(scene.sensors()[0], si)
+    assert (A(fp.ok) & (np.abs(A(fp.h)) > pixel.STRIP_PERSPECTIVE)).sum() >= 5
+    tg.check_gradient(scene, 'plane.bsdf.reflectance.data', rng, forward=forward)
