@@ -7,10 +7,18 @@ what the pixel sees. Those pixels are found by five camera rays per lane that di
 surface they hit (:func:`edge_pixels`) — the pixel's centre and its four corners with a box
 film; with a Gaussian film (whose pixel sees ±2 pixels) its centre and the corners of the square
 ±1.5 pixels around it (3 standard deviations) —; their lanes, compacted, trace ``silhouette_spp``
-more paths (:func:`extra_paths`) through random points of their pixel (box film) or film offsets
+more paths (:func:`extra_paths`) through points of their pixel (box film) or film offsets
 drawn from the filter around its centre (Gaussian film: each an independent point estimate of
 the pixel's filtered value, unlike the render's shared offsets), which the integrator averages
 with the sample's own.
+
+What those paths estimate at a silhouette is mostly coverage: how much of the pixel (or of the
+filter) each surface takes. Independent points estimate it with a binomial error that falls as
+``count^-1/2``; the points are therefore the first ``count`` of a (0, 2)-sequence (van der
+Corput and Sobol's second dimension) under a random digital shift per lane (:func:`net_point`):
+each power-of-two prefix has one point in every elementary interval of its size, so a straight
+edge crosses only about ``√count`` of the strata (a horizontal or vertical one, a single row
+of them), and the estimate stays unbiased.
 """
 
 from __future__ import annotations
@@ -76,14 +84,34 @@ def extra_paths(trace, sensor, sampler, pixel_pos, edge, count: int, offset=None
     return total
 
 
+def net_point(k, shift_x, shift_y, bits: int):
+    """Point ``k`` (UInt32, below ``2^bits``) of the (0, 2)-sequence — van der Corput in x,
+    Sobol's second dimension in y — XORed with the lane's digital shift (two UInt32): a point of
+    [0, 1)², uniformly distributed for a uniform shift, and the first ``2^m`` points of a lane
+    one per elementary interval of area ``2^-m``."""
+    x, y = mi.UInt32(0), mi.UInt32(0)
+    column = 1 << 31                                    # Sobol's direction numbers for x + 1
+    for j in range(bits):
+        bit = ((k >> j) & 1) != 0
+        x = x ^ dr.select(bit, mi.UInt32(1 << (31 - j)), 0)
+        y = y ^ dr.select(bit, mi.UInt32(column), 0)
+        column ^= column >> 1
+    scale = 2.0 ** -24                                  # float32's 24 bits: below 1 exactly
+    return mi.Point2f(mi.Float((x ^ shift_x) >> 8) * scale, mi.Float((y ^ shift_y) >> 8) * scale)
+
+
 @dr.syntax
 def _paths(trace, sensor, sampler, pixel_pos, edge, count, offset):
-    """Sum of ``count`` paths through film positions ``pixel_pos + offset(u)`` of each lane."""
+    """Sum of ``count`` paths through film positions ``pixel_pos + offset(u)`` of each lane,
+    ``u`` the lane's shifted (0, 2)-sequence."""
+    bits = max(1, (count - 1).bit_length())
+    shift_x = mi.UInt32(sampler.next_1d() * 16777216.0) << 8
+    shift_y = mi.UInt32(sampler.next_1d() * 16777216.0) << 8
     k = mi.UInt32(0)
     acc = mi.Spectrum(0)
     while dr.hint(edge & (k < count), label='pbrt_path (silhouettes)',
-                  exclude=[sensor, pixel_pos, edge]):              # read only
-        ray = _ray(sensor, pixel_pos, offset(sampler.next_2d()), edge)
+                  exclude=[sensor, pixel_pos, edge, shift_x, shift_y]):   # read only
+        ray = _ray(sensor, pixel_pos, offset(net_point(k, shift_x, shift_y, bits)), edge)
         acc += trace(sampler, ray, edge)
         k += 1
     return acc
