@@ -23,7 +23,11 @@ Who makes and reads it:
   ``SurfaceInteraction3f`` its BSDF passes on, and a symbolic BSDF call admits no per-lane input
   besides its arguments, so while ``sample()`` traces (or, in wavefront mode, runs) its path loop
   the scope is published on the thread, and opting-in textures (:mod:`mitsuba_pbrt_tex.pixel`)
-  read the sensor and the offsets from it.
+  read the sensor and the offsets from it;
+* while ``pbrt_path`` traces the extra paths of pixels that cross a silhouette
+  (:mod:`mitsuba_pbrt_tex.silhouettes`), :func:`silhouette_paths` says so on the thread:
+  textures whose exact filter would repeat one pixel's walk for each of those paths read a
+  cheaper filter over the same footprint there.
 """
 
 from __future__ import annotations
@@ -74,3 +78,20 @@ def published(scope: RenderScope | None):
 def current() -> RenderScope | None:
     """The published scope, or None (no ``pbrt_path`` render with pixel footprints)."""
     return getattr(_STATE, 'scope', None)
+
+
+@contextlib.contextmanager
+def silhouette_paths():
+    """Within this block (on this thread) the paths traced are the extra paths through pixels
+    that cross a silhouette."""
+    previous = getattr(_STATE, 'silhouette', False)
+    _STATE.silhouette = True
+    try:
+        yield
+    finally:
+        _STATE.silhouette = previous
+
+
+def in_silhouette_paths() -> bool:
+    """Whether the paths being traced are silhouette paths (:func:`silhouette_paths`)."""
+    return getattr(_STATE, 'silhouette', False)

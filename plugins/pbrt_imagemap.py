@@ -106,6 +106,7 @@ from mitsuba_pbrt_tex.mapping import mapping_2d
 from mitsuba_pbrt_tex.mipmap import (FILTERS, WIDTH_CONVENTIONS, MIPMap, Pyramid, build_pyramid,
                                      sanitized)
 from mitsuba_pbrt_tex.params import PluginError
+from mitsuba_pbrt_tex.render_scope import in_silhouette_paths
 from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
                                        uv_axes)
 from mitsuba_pbrt_tex.texture import PbrtTexture
@@ -290,6 +291,10 @@ class Plugin(PbrtTexture):
     def _make_filter(self):
         self.filter = TextureFilter(self.filter_name, self.wrap, self.max_anisotropy,
                                     WIDTH_CONVENTIONS[self.width_convention], self.sort_lookups)
+        # silhouette paths: N per edge pixel, each of which would walk the pixel's box again
+        self.silhouette_filter = TextureFilter(
+            'ewa', self.wrap, self.max_anisotropy, WIDTH_CONVENTIONS[self.width_convention],
+            self.sort_lookups) if self.filter_name == 'box' else None
 
     # ------------------------------------------------------------------ evaluation
     def context(self, si):
@@ -303,7 +308,12 @@ class Plugin(PbrtTexture):
     def _value(self, si, active):
         pixels = pixel.published_pixels() if self.filter_name == 'box' else None
         pyr, tables = self._state()
-        if pixels is not None:
+        if self.silhouette_filter is not None and in_silhouette_paths():
+            # the extra paths through a pixel that crosses a silhouette estimate its coverage:
+            # EWA over the footprint the box would average (the same for all of a pixel's)
+            v = self.silhouette_filter(pyr, self.mapping.map(pixel.context(si)), active) \
+                * self.scale
+        elif pixels is not None:
             v = self._film_filtered(si, active, pixels, pyr, tables) * self.scale
         elif self.filter_name == 'box':         # the pixel's average, strip by strip
             v = pixel.pixel_average(

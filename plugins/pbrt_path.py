@@ -61,7 +61,7 @@ import mitsuba as mi
 from mitsuba_pbrt_tex import film_view, pixel, raydiff, registry, silhouettes, variants
 from mitsuba_pbrt_tex.params import Params, PluginError
 from mitsuba_pbrt_tex.raydiff import RayDiff
-from mitsuba_pbrt_tex.render_scope import RenderScope, published
+from mitsuba_pbrt_tex.render_scope import RenderScope, published, silhouette_paths
 from mitsuba_pbrt_tex.scene_needs import SceneCache, SceneNeeds, TraceInputs
 
 #: depths are UInt32 in the loop and int32 in Mitsuba's C++ (-1 means unbounded)
@@ -273,17 +273,20 @@ class Plugin:
         silhouette (:mod:`mitsuba_pbrt_tex.silhouettes`). Box film: through random points of
         the pixel, whose textures centre on it; Gaussian film: through film offsets drawn from
         the filter, each a point estimate of the pixel's filtered value (their hits are not at
-        the render's shared offsets, so their textures keep the sample's footprint)."""
+        the render's shared offsets, so their textures keep the sample's footprint). What these
+        paths estimate is mostly coverage: box-filtered image textures read EWA over the same
+        footprint in them (:func:`~mitsuba_pbrt_tex.render_scope.silhouette_paths`)."""
         gaussian = scope.pixels is not None
         plain = RenderScope(scope.sensor)
 
         def trace(sub, ray, edge):
-            if not gaussian:
-                return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge, inputs,
-                                  scope).L
-            with published(None):
-                return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge, inputs,
-                                  plain).L
+            with silhouette_paths():
+                if not gaussian:
+                    return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge,
+                                      inputs, scope).L
+                with published(None):
+                    return self.trace(dr.ADMode.Primal, scene, sub, ray, None, None, edge,
+                                      inputs, plain).L
 
         probes = silhouettes.FILTER_PROBES if gaussian else silhouettes.PROBES
         edge = silhouettes.edge_pixels(scene, scope.sensor, scope.positions, active, probes)

@@ -30,8 +30,8 @@ def test_render_benchmark_quick(tmp_path):
 
 def test_far_edge_rows_and_errors():
     """Distance from a far edge is counted per column from its topmost textured pixel; the
-    edge rows' and interior's RMSE, the interior's noise and the edge share follow from an
-    image whose error is known row by row."""
+    edge rows' and interior's RMSE, the reference noise of each edge row and of the interior
+    and the edge share follow from an image whose error is known row by row."""
     from mitsuba_pbrt_tex.bench.render import EDGE_ROWS, Reference, edge_errors, rows_below_edge
     mask = np.zeros((8, 4), bool)
     mask[2:, :2] = True                     # a plane whose far edge is row 2 in columns 0-1 ...
@@ -39,7 +39,9 @@ def test_far_edge_rows_and_errors():
     below = rows_below_edge(mask)
     assert below[2, 0] == 0 and below[4, 0] == 2 and below[4, 3] == 0 and below[7, 3] == 3
     assert (below[~mask] == -1).all()
-    ref = Reference(np.zeros((8, 4, 3)), np.full((8, 4, 3), 0.01 ** 2))
+    noise_sq = np.full((8, 4, 3), 0.01 ** 2)
+    noise_sq[below == 0] = 0.02 ** 2        # the edge row's own reference noise
+    ref = Reference(np.zeros((8, 4, 3)), noise_sq)
     img = np.zeros((8, 4, 3))
     img[below == 1] = 0.3                   # error only in the second row from the edge ...
     img[below == EDGE_ROWS] = 0.1           # ... and in the first interior row
@@ -49,6 +51,7 @@ def test_far_edge_rows_and_errors():
     assert e.interior == pytest.approx(np.sqrt(0.01 * 4 / interior))
     assert e.interior_noise == pytest.approx(0.01)
     assert e.edge_share == pytest.approx(0.09 * 4 / (0.09 * 4 + 0.01 * 4))
+    assert e.row_noise == pytest.approx([0.02, 0.01, 0.01])
 
 
 def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path):

@@ -288,6 +288,52 @@ def test_silhouette_samples_follow_the_render_seed(rng):
     assert differ.sum() >= 2, differ.sum()
 
 
+def test_silhouette_paths_read_box_textures_once_per_pixel(rng):
+    """In silhouette paths (render_scope.silhouette_paths) a box-filtered image texture reads
+    EWA over its pixel's footprint: two hits at different points of the same pixel get the
+    same value (float32 rounding of each hit's pixel footprint, through EWA's weight table:
+    < 5e-5, measured 1.4e-5); it equals what an
+    ``ewa`` texture of the same image returns for a hit carrying that pixel's centroid and
+    partials (5e-6: the same filter reached through the other plugin path), and differs from
+    both the exact box average (outside silhouette paths) and the sample-centred EWA by
+    ≥ 1e-3 somewhere (the filter and the footprint both matter on this noise)."""
+    from mitsuba_pbrt_tex import pixel
+    from mitsuba_pbrt_tex.render_scope import RenderScope, published, silhouette_paths
+    spec = box_texture(rng, size=64, tiles=6.0, maxanisotropy=16)
+    box_tex = mi.load_dict(spec)
+    ewa_tex = mi.load_dict({**spec, 'filter': 'ewa'})
+    scene = mi.load_dict(scene_dict(spec))
+    sensor = scene.sensors()[0]
+    w, h = RES
+    n = 24
+    pixels = np.stack([rng.integers(2, w - 2, n), rng.integers(h // 2, h - 1, n)], 1)
+    scope = RenderScope(sensor)
+    seen = []
+    for jitter in (0.2, 0.8):
+        pos = (pixels + jitter) / np.array([w, h])
+        ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
+                                                mi.Point2f(0.5), True)
+        si = scene.ray_intersect(ray)
+        si.compute_uv_partials(ray)
+        assert A(si.is_valid()).all()
+        with published(scope), silhouette_paths():
+            extra = A(box_tex.eval(si))
+        with published(scope):
+            exact = A(box_tex.eval(si))
+            ctx = pixel.context(si)
+        sample_ewa = A(ewa_tex.eval(si))
+        at_pixel = mi.SurfaceInteraction3f(si)
+        at_pixel.uv = ctx.uv
+        at_pixel.duv_dx = mi.Vector2f(ctx.dudx, ctx.dvdx)
+        at_pixel.duv_dy = mi.Vector2f(ctx.dudy, ctx.dvdy)
+        pixel_ewa = A(ewa_tex.eval(at_pixel))
+        np.testing.assert_allclose(extra, pixel_ewa, rtol=0, atol=5e-6)
+        assert np.abs(extra - exact).max() > 1e-3
+        assert np.abs(extra - sample_ewa).max() > 1e-3
+        seen.append(extra)
+    np.testing.assert_allclose(seen[0], seen[1], rtol=0, atol=5e-5)
+
+
 def test_silhouette_points_are_a_shifted_02_sequence(rng):
     """The extra paths' points (silhouettes.net_point) for random digital shifts: the first 16
     of a lane have exactly one point in each elementary interval of area 1/16 (16×1, 8×2, 4×4,

@@ -43,6 +43,8 @@ import numpy as np
 from ..outputs import save_figure
 
 LUM = np.array([0.212671, 0.715160, 0.072169])
+#: the silhouette samples the README recommends with pixel footprints
+SILHOUETTE_SPP = 64
 
 
 @dataclass
@@ -76,8 +78,9 @@ def _checker_cases(cells):
             Method('pbrt_checkerboard area', {**pbrt, 'aamode': 'area'}, True, 'footprint'),
             Method('pbrt_checkerboard area, footprint pixel',
                    {**pbrt, 'aamode': 'area', 'footprint': 'pixel'}, True, 'footprint'),
-            Method('pbrt_checkerboard area, footprint pixel, silhouette_spp 16',
-                   {**pbrt, 'aamode': 'area', 'footprint': 'pixel', 'silhouette_spp': '16'},
+            Method(f'pbrt_checkerboard area, footprint pixel, silhouette_spp {SILHOUETTE_SPP}',
+                   {**pbrt, 'aamode': 'area', 'footprint': 'pixel',
+                    'silhouette_spp': str(SILHOUETTE_SPP)},
                    True, 'footprint'),
             Method('pbrt_supersample 16 (point checker)', {
                 'texture': 'tex/checker_supersample.xml', 'samples': '16', 'cells': str(cells)}, True)]
@@ -108,24 +111,27 @@ def _image_methods(image, tiles, pixel=False, extra=None):
     if pixel:           # scenes whose pbrt_path takes "footprint" (int/pbrt_path.xml)
         ours.append(Method('pbrt_imagemap box, footprint pixel',
                            {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'))
-        ours.append(Method('pbrt_imagemap box, footprint pixel, silhouette_spp 16',
+        ours.append(Method(f'pbrt_imagemap box, footprint pixel, silhouette_spp {SILHOUETTE_SPP}',
                            {**common, 'filter': 'box', 'footprint': 'pixel',
-                            'silhouette_spp': '16'}, True, 'footprint'))
+                            'silhouette_spp': str(SILHOUETTE_SPP)}, True, 'footprint'))
     return builtin, ours
 
 
 def _gaussian_methods(image, tiles, extra=None):
-    """On a Gaussian film: Mitsuba's bitmap + path, and ours — sample-centred filters and pixel
-    footprints, whose texture filters the film's own kernel, with and without silhouette
-    samples."""
+    """On a Gaussian film: Mitsuba's bitmap + path, and ours — our image texture as a drop-in
+    under Mitsuba's path, sample-centred filters and pixel footprints, whose texture filters the
+    film's own kernel, with and without silhouette samples."""
     common, builtin = _image_common(image, tiles, extra)
-    ours = [Method('pbrt_imagemap bilinear', {**common, 'filter': 'bilinear'}, True),
+    ours = [Method('pbrt_imagemap bilinear + Mitsuba path',
+                   {**common, 'filter': 'bilinear', 'integrator': 'path'}, True),
+            Method('pbrt_imagemap bilinear', {**common, 'filter': 'bilinear'}, True),
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear'}, True),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True),
             Method('pbrt_imagemap box, footprint pixel',
                    {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'),
-            Method('pbrt_imagemap box, footprint pixel, silhouette_spp 16',
-                   {**common, 'filter': 'box', 'footprint': 'pixel', 'silhouette_spp': '16'},
+            Method(f'pbrt_imagemap box, footprint pixel, silhouette_spp {SILHOUETTE_SPP}',
+                   {**common, 'filter': 'box', 'footprint': 'pixel',
+                    'silhouette_spp': str(SILHOUETTE_SPP)},
                    True, 'footprint')]
     return builtin, ours
 
@@ -382,13 +388,14 @@ def rows_below_edge(mask):
 
 @dataclass
 class EdgeErrors:
-    """RMSE next to a far edge: in each of the first :data:`EDGE_ROWS` rows, in the interior
-    below them, that interior's reference noise, and the edge rows' share of the squared error
-    over the plane."""
+    """RMSE next to a far edge: in each of the first :data:`EDGE_ROWS` rows and the reference
+    noise there, in the interior below them and that interior's reference noise, and the edge
+    rows' share of the squared error over the plane."""
     by_row: list
     interior: float
     interior_noise: float
     edge_share: float
+    row_noise: list
 
 
 def edge_errors(img, ref: Reference, below) -> EdgeErrors:
@@ -399,7 +406,8 @@ def edge_errors(img, ref: Reference, below) -> EdgeErrors:
     edge = (below >= 0) & ~inner
     total = sq[below >= 0].sum()
     return EdgeErrors(by_row, float(np.sqrt(sq[inner].mean())), ref.noise(inner),
-                      float(sq[edge].sum() / total) if total > 0 else 0.0)
+                      float(sq[edge].sum() / total) if total > 0 else 0.0,
+                      [ref.noise(below == k) for k in range(EDGE_ROWS)])
 
 
 def errors(img, ref, mask):
@@ -468,7 +476,9 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
             _render(scene, 1, seed=1)
             first = time.perf_counter() - t0
             compile_s = None
-            for spp in (ours_spp if m.ours else builtin_spp):
+            # next to a far edge pixel footprints reach errors that 1024 spp do not
+            deep = [4 * builtin_spp[-1]] if case.far_edge and not quick else []
+            for spp in (ours_spp if m.ours else builtin_spp + deep):
                 times, errs, edges = [], [], []
                 for r in range(repeats):
                     dr.sync_thread()
@@ -500,9 +510,11 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
 def _edge_columns(edges) -> dict:
     """The far-edge figures of repeated renders, averaged (empty without a far edge)."""
     if not edges:
-        return dict(edge_rows='', rmse_interior='', interior_noise='', edge_share='')
+        return dict(edge_rows='', edge_noise='', rmse_interior='', interior_noise='',
+                    edge_share='')
     return dict(edge_rows=' '.join(f'{np.mean([e.by_row[k] for e in edges]):.4f}'
                                    for k in range(EDGE_ROWS)),
+                edge_noise=' '.join(f'{n:.4f}' for n in edges[0].row_noise),
                 rmse_interior=float(np.mean([e.interior for e in edges])),
                 interior_noise=edges[0].interior_noise,
                 edge_share=float(np.mean([e.edge_share for e in edges])))
@@ -520,8 +532,8 @@ def far_edge_lines(case: Case, rows) -> list[str]:
             lines.append(f'  - *{r["method"]}* at 1 spp: interior (≥ {EDGE_ROWS} rows below the '
                          f'far edge) RMSE {r["rmse_interior"]:.4f} = **{ratio:.1f}×** the '
                          f'reference noise there ({r["interior_noise"]:.4f}); the first '
-                         f'{EDGE_ROWS} rows {r["edge_rows"]} ({100 * r["edge_share"]:.0f}% of '
-                         f'the error²)')
+                         f'{EDGE_ROWS} rows {r["edge_rows"]} (reference noise there '
+                         f'{r["edge_noise"]}; {100 * r["edge_share"]:.0f}% of the error²)')
     if lines:
         lines.insert(0, f'- **{case.name}**, by distance from the far edge:')
     return lines
@@ -621,7 +633,7 @@ def compare_groups(rows) -> list[str]:
 def write_outputs(rows, summary, out_dir, res, ref_spp, variant, repeats):
     keys = ['scene', 'method', 'ours', 'group', 'spp', 'time_s', 'compile_s', 'rmse',
             'rmse_textured', 'rel_error', 'reference_noise', 'rmse_interior', 'interior_noise',
-            'edge_rows', 'edge_share']
+            'edge_rows', 'edge_noise', 'edge_share']
     with open(os.path.join(out_dir, 'results.csv'), 'w', newline='') as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
