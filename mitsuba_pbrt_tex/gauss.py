@@ -120,7 +120,9 @@ class _Lattice:
     → corrected film offset, before the perspective division); ``sx, sy, ox, oy`` the map st →
     lattice; ``fine`` (below level 0) and ``view`` (the level read otherwise); the row bounds
     (``t0``, ``t1``) and the support's conic (``qa, qb, qc``, ``p0, p1``, ``r2``: see
-    :func:`_support_conic`); ``run`` (lanes summed) and ``beyond`` (wider than the image)."""
+    :func:`_support_conic`); the precision matrix ``pxx, pxy, pyy`` and the coefficient
+    ``kurt`` of the fourth-cumulant term (:func:`_fourth_cumulant`); ``run`` (lanes summed) and
+    ``beyond`` (wider than the image)."""
     X: object
     Y: object
     i00: object
