@@ -81,7 +81,7 @@ MIP_LATTICE_SIGMA = 2.0
 #: well; fewer aliased).
 MIN_SIGMA_UNITS = 1.0
 #: A kernel's larger standard deviation spans at most this many lattice units.
-MAX_SIGMA = 16.0
+MAX_SIGMA = 32.0
 #: The loop's support is the filter's disc widened by this factor in radius² (float32 rounding
 #: of its bound; the filter is zero at its radius).
 _SPAN_MARGIN = 1.002

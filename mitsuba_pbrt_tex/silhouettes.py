@@ -100,13 +100,20 @@ def net_point(k, shift_x, shift_y, bits: int):
     return mi.Point2f(mi.Float((x ^ shift_x) >> 8) * scale, mi.Float((y ^ shift_y) >> 8) * scale)
 
 
+def digital_shift(sampler):
+    """A lane's random digital shift for :func:`net_point`: two UInt32 whose top 24 bits are
+    uniform (a float32 sample's resolution)."""
+    shift_x = mi.UInt32(sampler.next_1d() * 16777216.0) << 8
+    shift_y = mi.UInt32(sampler.next_1d() * 16777216.0) << 8
+    return shift_x, shift_y
+
+
 @dr.syntax
 def _paths(trace, sensor, sampler, pixel_pos, edge, count, offset):
     """Sum of ``count`` paths through film positions ``pixel_pos + offset(u)`` of each lane,
     ``u`` the lane's shifted (0, 2)-sequence."""
     bits = max(1, (count - 1).bit_length())
-    shift_x = mi.UInt32(sampler.next_1d() * 16777216.0) << 8
-    shift_y = mi.UInt32(sampler.next_1d() * 16777216.0) << 8
+    shift_x, shift_y = digital_shift(sampler)
     k = mi.UInt32(0)
     acc = mi.Spectrum(0)
     while dr.hint(edge & (k < count), label='pbrt_path (silhouettes)',

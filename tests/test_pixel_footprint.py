@@ -358,6 +358,27 @@ def test_silhouette_points_are_a_shifted_02_sequence(rng):
     assert abs(x.var() - 1 / 12) < 3 * np.sqrt(1 / 180 / lanes)
 
 
+def test_silhouette_shifts_are_uniform_and_independent():
+    """The lanes' digital shifts (silhouettes.digital_shift, from a sampler) as points of
+    [0, 1)²: uniform in each coordinate (mean 1/2, variance 1/12, and a quarter of them in each
+    half of [0, 1/2) within 4 standard errors) and uncorrelated (|r| < 4/√n), over 4096 lanes —
+    a shift confined to a corner, or one coordinate's reused, would bias the coverage
+    estimate."""
+    from mitsuba_pbrt_tex.silhouettes import digital_shift
+    n = 4096
+    sampler = mi.load_dict({'type': 'independent'})
+    sampler.seed(7, n)
+    sx, sy = digital_shift(sampler)
+    pts = np.stack([A(sx), A(sy)], 1).astype(np.float64) / 2.0 ** 32
+    for c in range(2):
+        v = pts[:, c]
+        assert abs(v.mean() - 0.5) < 4 * np.sqrt(1 / 12 / n)
+        assert abs(v.var() - 1 / 12) < 4 * np.sqrt(1 / 180 / n)
+        quarter = ((v >= 0.25) & (v < 0.5)).mean()
+        assert abs(quarter - 0.25) < 4 * np.sqrt(0.25 * 0.75 / n)
+    assert abs(np.corrcoef(pts[:, 0], pts[:, 1])[0, 1]) < 4 / np.sqrt(n)
+
+
 def test_silhouette_spp_has_no_effect_with_the_sample_footprint(rng):
     """silhouette_spp belongs to footprint="pixel" (parameter table): with the sample footprint
     it changes nothing — the same image bit for bit (same seed), and gradient renders, which
