@@ -91,6 +91,22 @@ class PixelFootprint:
     ok: object          # where the footprint holds
 
 
+def _film_uv(sensor, direction, time, active=True):
+    """The film position (crop pixel coordinates) of the camera ray through the pinhole along
+    world-space ``direction``: Mitsuba's projection of a point far along it (half the far clip
+    distance, at most 1e7), so that the point's float32 rounding, relative to its distance, is that of the
+    direction itself (~1e-7). The hit point itself, on a plane hundreds of units across, seen
+    from a few units away, is rounded ~1e-5 of its coordinates: its film position was off by
+    up to 7e-3 pixel (the bench's grazing plane)."""
+    to_world = sensor.world_transform()
+    cam_o = mi.Point3f(to_world.translation())
+    it = dr.zeros(mi.Interaction3f)
+    it.p = cam_o + dr.normalize(direction) * min(0.5 * float(sensor.far_clip()), 1e7)
+    it.time = time
+    ds, _ = sensor.sample_direction(it, mi.Point2f(0.5), active)
+    return mi.Point2f(ds.uv)
+
+
 def _film_position(sensor, si):
     """(camera hit?, the hit's film position in crop pixel coordinates) — the one computation
     both ``pbrt_path`` and the textures make, so that both find the same pixel."""
@@ -104,10 +120,7 @@ def _film_position(sensor, si):
     origin = p + si.t * wi
     expected = cam_o - wi * (float(sensor.near_clip()) / dr.dot(forward, -wi))
     camera_hit = si.is_valid() & (dr.norm(origin - expected) <= CAMERA_TOLERANCE * dist)
-    it = dr.zeros(mi.Interaction3f)
-    it.p, it.time = p, si.time
-    ds, _ = sensor.sample_direction(it, mi.Point2f(0.5), camera_hit)
-    return camera_hit, mi.Point2f(ds.uv)
+    return camera_hit, _film_uv(sensor, -wi, si.time, camera_hit)
 
 
 def inset_camera_rays(sensor, ray, pixel_pos):
@@ -115,11 +128,8 @@ def inset_camera_rays(sensor, ray, pixel_pos):
     coordinates), moved where needed to a film position :data:`EDGE_MARGIN` inside the pixel
     (0.4% of the samples, by at most that margin): a hit's film position, found from the hit
     point, then falls in the pixel its sample was drawn in."""
-    it = dr.zeros(mi.Interaction3f, dr.width(ray.o))
-    it.p, it.time = ray.o + ray.d, ray.time
-    ds, _ = sensor.sample_direction(it, mi.Point2f(0.5))
     corner = mi.Point2f(pixel_pos) - mi.ScalarVector2f(sensor.film().crop_offset())
-    uv = mi.Point2f(ds.uv)
+    uv = _film_uv(sensor, ray.d, ray.time)
     inside = dr.clip(uv, corner + EDGE_MARGIN, corner + (1 - EDGE_MARGIN))
     moved = dr.any(inside != uv) & dr.all(dr.isfinite(uv))
     moved_ray, _ = film_ray(sensor, inside, ray.time, moved)

@@ -666,6 +666,41 @@ def test_box_film_samples_stay_in_the_pixel_they_were_drawn_in(rng):
         assert (wrong.sum() == 0) == moved
 
 
+def test_camera_hits_on_a_large_plane_find_their_film_position(rng):
+    """The bench's grazing geometry (a rectangle scaled 200, seen from 1 unit above it, 320×180):
+    a hit point there carries ~1e-5 units of float32 rounding a few units from the camera, and
+    its film position computed from it was off by up to 7e-3 pixel — past the 1e-3-pixel inset,
+    so 296 of 744686 inset samples found the neighbouring pixel (a pixel off by its neighbour's
+    value in 1-spp renders). From the ray's direction instead: within 5e-4 pixel of the drawn
+    position (measured 9.4e-5, including the float32 rounding of the drawn position itself), and
+    every inset sample drawn 1e-6 pixel inside its pixel's edge finds its pixel."""
+    from mitsuba_pbrt_tex import pixel
+    w, h = 320, 180
+    d = scene_dict(box_texture(rng), second_bsdf=False)
+    d['plane']['to_world'] = T().scale(200).rotate([1, 0, 0], -90)
+    d['sensor'].update(fov=60, to_world=T().look_at([0, 1, 6], [0, -0.6, -10], [0, 1, 0]))
+    d['sensor']['film'].update(width=w, height=h)
+    scene = mi.load_dict(d)
+    sensor = scene.sensors()[0]
+    ys, xs = np.mgrid[h // 2:h, 0:w]
+    corner = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+    u = rng.random((4, corner.shape[0], 2))
+    u[1:3, :, 0] = np.where(u[1:3, :, 0] < 0.5, 1e-6, 1 - 1e-6)      # at a left or right edge
+    u[3, :, 1] = np.where(u[3, :, 1] < 0.5, 1e-6, 1 - 1e-6)          # at a top or bottom edge
+    pos = (corner[None] + u).reshape(-1, 2)
+    corners = np.repeat(corner[None], 4, 0).reshape(-1, 2)
+    ray, _ = sensor.sample_ray_differential(
+        0.0, 0.5, mi.Point2f((pos / [w, h]).T.astype(np.float32)), mi.Point2f(0.5), True)
+    hit, uv = pixel._film_position(sensor, scene.ray_intersect(mi.Ray3f(ray)))
+    hit, uv = A(hit), A(uv)
+    assert hit.mean() > 0.9
+    assert np.abs(uv[hit] - pos[hit]).max() < 5e-4
+    inset = pixel.inset_camera_rays(sensor, ray, mi.Vector2f(corners.T.astype(np.float32)))
+    hit, uv = pixel._film_position(sensor, scene.ray_intersect(mi.Ray3f(inset)))
+    hit, uv = A(hit), A(uv)
+    assert not np.any(np.floor(uv[hit]) != corners[hit])
+
+
 @pytest.mark.parametrize('forward', [False, True])
 def test_texel_gradients_through_pixel_strips(forward, rng):
     """Texel gradients where pixels are looked up as strips (next to a far edge: the strips'
