@@ -16,8 +16,9 @@ reaches a texture (still only ``si``):
   projected back to the film, and ``pbrt_path`` decodes it the same way (same function, same
   inputs) at the first hit and counts the sample there, so the pixel a texture centred on and
   the pixel the sample counts in are always the same. A margin of half a stratum (≥ 1/64
-  pixel up to 1024 spp) absorbs the rounding of a hit projected back to the film (up to 3e-3
-  pixel on the bench's 400-unit plane). The pixel cannot be encoded in the positions'
+  pixel up to 1024 spp) absorbs the rounding of a hit's film position (~1e-4 pixel from its
+  ray's direction; the hit point itself was off by up to 7e-3 pixel on the bench's 400-unit
+  plane). The pixel cannot be encoded in the positions'
   sub-pixel bits instead: that needs margins of ~1e-2 pixel on such scenes, or a quarter of the
   samples decode to a neighbour. The price: at low spp every pixel samples the same offsets,
   so silhouettes alias rather than being noisy;
@@ -119,8 +120,8 @@ class FilterPixels:
     so each ``v_s`` has density ``f`` exactly (weight 1: every sample counts once in ``c``, and
     the pixel is an unbiased estimate of the filter-weighted average). From a film position
     ``x``, ``frac(x)`` gives ``ψ`` and the grid cell ``s`` — with a margin of half a cell
-    (``1/(2a)`` in ψ, ≥ 1/64 pixel up to 1024 spp) against the rounding of a hit point
-    projected back to the film (measured up to 3e-3 pixel on the bench's 400-unit plane) — and
+    (``1/(2a)`` in ψ, ≥ 1/64 pixel up to 1024 spp) against the rounding of a hit's film
+    position (~1e-4 pixel: :func:`mitsuba_pbrt_tex.pixel._film_uv`) — and
     ``c = round(x - φ_s - m_s)``.
 
     Border pixels: their samples may lie outside the crop window, where the film's own weights

@@ -43,11 +43,11 @@ the centre ray, ``|g|`` or ``|h|`` ≥ 1 (the pixel sees the plane's horizon), n
 use the sample-centred context.
 
 Limits: ``perspective`` sensors (a pinhole: the aperture sample plays no role), box or Gaussian
-film filter (``pbrt_path`` refuses the others). A hit's film position, found again from the hit
-point, carries ~1e-5 pixel of float32 rounding: on a box film ``pbrt_path`` keeps its camera
-samples :data:`EDGE_MARGIN` inside their pixel (:func:`inset_camera_rays`), so that no sample is
-assigned to the neighbouring pixel (the Gaussian path counts each sample where its texture
-centred).
+film filter (``pbrt_path`` refuses the others). A hit's film position, found again from its
+ray's direction (:func:`_film_uv`), carries ~1e-4 pixel of float32 rounding: on a box film
+``pbrt_path`` keeps its camera samples :data:`EDGE_MARGIN` inside their pixel
+(:func:`inset_camera_rays`), so that no sample is assigned to the neighbouring pixel (the
+Gaussian path counts each sample where its texture centred).
 """
 
 from __future__ import annotations
@@ -94,10 +94,10 @@ class PixelFootprint:
 def _film_uv(sensor, direction, time, active=True):
     """The film position (crop pixel coordinates) of the camera ray through the pinhole along
     world-space ``direction``: Mitsuba's projection of a point far along it (half the far clip
-    distance, at most 1e7), so that the point's float32 rounding, relative to its distance, is that of the
-    direction itself (~1e-7). The hit point itself, on a plane hundreds of units across, seen
-    from a few units away, is rounded ~1e-5 of its coordinates: its film position was off by
-    up to 7e-3 pixel (the bench's grazing plane)."""
+    distance, at most 1e7), so that the point's float32 rounding, relative to its distance, is
+    that of the direction itself (~1e-7). The hit point itself, on a plane hundreds of units
+    across, seen from a few units away, is rounded ~1e-5 of its coordinates: its film position
+    was off by up to 7e-3 pixel (the bench's grazing plane)."""
     to_world = sensor.world_transform()
     cam_o = mi.Point3f(to_world.translation())
     it = dr.zeros(mi.Interaction3f)
@@ -126,8 +126,8 @@ def _film_position(sensor, si):
 def inset_camera_rays(sensor, ray, pixel_pos):
     """``ray`` (Mitsuba's camera rays of a box film, drawn in pixels ``pixel_pos``, film
     coordinates), moved where needed to a film position :data:`EDGE_MARGIN` inside the pixel
-    (0.4% of the samples, by at most that margin): a hit's film position, found from the hit
-    point, then falls in the pixel its sample was drawn in."""
+    (0.4% of the samples, by at most that margin): a hit's film position, found from its ray's
+    direction, then falls in the pixel its sample was drawn in."""
     corner = mi.Point2f(pixel_pos) - mi.ScalarVector2f(sensor.film().crop_offset())
     uv = _film_uv(sensor, ray.d, ray.time)
     inside = dr.clip(uv, corner + EDGE_MARGIN, corner + (1 - EDGE_MARGIN))

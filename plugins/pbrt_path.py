@@ -270,8 +270,8 @@ class Plugin:
 
     def _with_silhouette_paths(self, scene, sampler, out, scope, inputs, active):
         """``out`` with ``silhouette_spp`` more paths averaged in, in the pixels that cross a
-        silhouette (:mod:`mitsuba_pbrt_tex.silhouettes`). Box film: through random points of
-        the pixel, whose textures centre on it; Gaussian film: through film offsets drawn from
+        silhouette (:mod:`mitsuba_pbrt_tex.silhouettes`). Box film: through points of the
+        pixel (a randomly shifted (0, 2)-sequence), whose textures centre on it; Gaussian film: through film offsets drawn from
         the filter, each a point estimate of the pixel's filtered value (their hits are not at
         the render's shared offsets, so their textures keep the sample's footprint). What these
         paths estimate is mostly coverage: box-filtered image textures read EWA over the same
