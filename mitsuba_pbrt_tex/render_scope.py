@@ -64,15 +64,20 @@ class RenderScope:
 
 
 @contextlib.contextmanager
-def published(scope: RenderScope | None):
-    """Within this block (on this thread), opting-in textures centre camera hits on the pixels
-    of ``scope`` (None: nothing published, every texture keeps the sample's footprint)."""
-    previous = getattr(_STATE, 'scope', None)
-    _STATE.scope = scope
+def _on_thread(name: str, value):
+    """``value`` as this thread's ``name`` within the block, the previous one after it."""
+    previous = getattr(_STATE, name, None)
+    setattr(_STATE, name, value)
     try:
         yield
     finally:
-        _STATE.scope = previous
+        setattr(_STATE, name, previous)
+
+
+def published(scope: RenderScope | None):
+    """Within this block (on this thread), opting-in textures centre camera hits on the pixels
+    of ``scope`` (None: nothing published, every texture keeps the sample's footprint)."""
+    return _on_thread('scope', scope)
 
 
 def current() -> RenderScope | None:
@@ -80,18 +85,12 @@ def current() -> RenderScope | None:
     return getattr(_STATE, 'scope', None)
 
 
-@contextlib.contextmanager
 def silhouette_paths():
     """Within this block (on this thread) the paths traced are the extra paths through pixels
     that cross a silhouette."""
-    previous = getattr(_STATE, 'silhouette', False)
-    _STATE.silhouette = True
-    try:
-        yield
-    finally:
-        _STATE.silhouette = previous
+    return _on_thread('silhouette', True)
 
 
 def in_silhouette_paths() -> bool:
     """Whether the paths being traced are silhouette paths (:func:`silhouette_paths`)."""
-    return getattr(_STATE, 'silhouette', False)
+    return bool(getattr(_STATE, 'silhouette', False))
