@@ -192,7 +192,7 @@ def test_kernel_against_numpy_integration(case, rng):
     support (exact projective map). On level 0 or a finer lattice (smaller deviation up to ~4
     texels, cases 0–6): within 2e-3 of texels in [0, 1] (measured ≤ 1.4e-3, the largest with
     perspective: the second-moment correction goes through the centre's Jacobian, which the
-    perspective changes across the support; ≤ 3.4e-4 without); on MIP levels 1–2 (cases 7–8):
+    perspective changes across the support; ≤ 7e-5 without, cases 0, 1, 5); on MIP levels 1–2 (cases 7–8):
     within 5e-3 (measured ≤ 2.4e-3: white-noise detail below a MIP texel, which any MIP
     filter loses)."""
     from mitsuba_pbrt_tex import gauss
