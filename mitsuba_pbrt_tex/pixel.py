@@ -90,6 +90,14 @@ class PixelFootprint:
     dp1: object
     ok: object          # where the footprint holds
 
+    def uv_map(self) -> '_Projective':
+        """The footprint in uv, as a projective map of the pixel."""
+        return _Projective(self.uv_c, self.d0, self.d1, self.g, self.h)
+
+    def world_map(self) -> '_Projective':
+        """The footprint in world space, as a projective map of the pixel."""
+        return _Projective(self.p_c, self.dp0, self.dp1, self.g, self.h)
+
 
 def _film_uv(sensor, direction, time, active=True):
     """The film position (crop pixel coordinates) of the camera ray through the pinhole along
@@ -308,9 +316,8 @@ def strips(si):
     fp = pixel_footprint(scope.sensor, si)
     term = dr.maximum(dr.abs(fp.g), dr.abs(fp.h))
     n = dr.clip(dr.ceil(term * (1.0 / STRIP_PERSPECTIVE)), 1, MAX_STRIPS)
-    return PixelStrips(_Projective(fp.uv_c, fp.d0, fp.d1, fp.g, fp.h),
-                       _Projective(fp.p_c, fp.dp0, fp.dp1, fp.g, fp.h),
-                       dr.abs(fp.h) >= dr.abs(fp.g), dr.select(fp.ok, n, 1), fp.ok)
+    return PixelStrips(fp.uv_map(), fp.world_map(), dr.abs(fp.h) >= dr.abs(fp.g),
+                       dr.select(fp.ok, n, 1), fp.ok)
 
 
 def pixel_average(si, lookup, value_type, active=True):
@@ -351,5 +358,4 @@ def context(si) -> TextureEvalContext:
     if scope is None or scope.pixels is not None:
         return ctx
     fp = pixel_footprint(scope.sensor, si)
-    return _part_context(ctx, _Projective(fp.uv_c, fp.d0, fp.d1, fp.g, fp.h),
-                         _Projective(fp.p_c, fp.dp0, fp.dp1, fp.g, fp.h), fp.ok)
+    return _part_context(ctx, fp.uv_map(), fp.world_map(), fp.ok)
