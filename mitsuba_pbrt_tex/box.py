@@ -364,7 +364,11 @@ def _next_event(start, d, inv, s, i, j, up) -> _Step:
     knot_x = dr.select(right, i + 1, i)
     band_y = dr.select(up, j + 1, j)
     sk = dr.select(d[0] != 0, (knot_x - start[0]) * inv[0], dr.inf)
-    sb = dr.select(d[1] != 0, (band_y - start[1]) * inv[1], dr.inf)
+    # band boundaries only in the chain's direction: corners opposite each other come from the
+    # centre (rounded), so a side of a nearly axis-aligned footprint can run an ulp the other
+    # way, and its next boundary would then lie behind it, for ever
+    along = dr.select(up, d[1] > 0, d[1] < 0)
+    sb = dr.select(along, (band_y - start[1]) * inv[1], dr.inf)
     first = dr.minimum(sk, sb)
     end = ~(first < 1)
     band = ~end & (sb <= sk)

@@ -106,6 +106,35 @@ def test_coarser_levels_match_polygon_clipping(wrap, rng):
     np.testing.assert_allclose(got, want, atol=1e-5)
 
 
+def test_nearly_axis_aligned_footprints_end_and_match_polygon_clipping(rng):
+    """Rectangles turned by 0 to 1e-6 rad (either way, either orientation, 0.3–8 texels across,
+    squares among them): two corners are computed from the centre (rounded), so a side meant to
+    run down the left chain can run an ulp up, and the walk then looked for its next row
+    boundary behind it for ever — the first case is a camera hit of a Cornell-box render that
+    hung (its uv, partials and tiling, on a 16² image). Every lookup ends and equals polygon
+    clipping (atol 1e-5, as above)."""
+    img = rng.random((16, 16, 3))
+    tex = imagemap(img, to_uv=mi.ScalarTransform4f().scale([3, 3, 1]))
+    n = 40
+    hit = f32([[0.801102340, 0.527704656]])
+    hit_d0, hit_d1 = f32([[1.36390105e-02, -8.20471069e-09]]), f32([[1.02140951e-09, -1.36691350e-02]])
+    ang = rng.choice([0.0, 1e-9, 1e-8, 1e-7, 1e-6], n) * rng.choice([-1, 1], n) \
+        + rng.choice([0.0, math.pi / 2], n)
+    size = rng.uniform(0.3, 8.0, (n, 1)) / 48
+    aspect = np.where(rng.random((n, 1)) < 0.5, 1.0, rng.uniform(0.2, 5.0, (n, 1)))
+    flip = rng.choice([-1.0, 1.0], (n, 1))
+    d0 = f32(np.stack([np.cos(ang), np.sin(ang)], 1) * size)
+    d1 = f32(np.stack([-np.sin(ang), np.cos(ang)], 1) * size * aspect * flip)
+    uv = f32(np.concatenate([hit, rng.uniform(0, 1, (n, 2))]))
+    d0, d1 = np.concatenate([hit_d0, d0]), np.concatenate([hit_d1, d1])
+    # and each transposed (the walk's rows run along either texture axis)
+    uv, d0, d1 = (np.concatenate([v, v[:, ::-1]]) for v in (uv, d0, d1))
+    got = A(tex.eval_3(make_si(uv, d0, d1)))
+    want = np.array([rbox.box_average(img, 3 * uv[k, 0], 3 * uv[k, 1], 3 * d0[k], 3 * d1[k],
+                                      'repeat') for k in range(len(uv))])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
 def test_far_from_the_origin_keeps_float32_digits(rng):
     """A 1024² image, lookups near its far corner (positions up to 1024 texels): each value is an
     integral over texels near the footprint, so nothing grows with the position. With a
