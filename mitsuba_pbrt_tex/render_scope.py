@@ -27,7 +27,11 @@ Who makes and reads it:
 * while ``pbrt_path`` traces the extra paths of pixels that cross a silhouette
   (:mod:`mitsuba_pbrt_tex.silhouettes`), :func:`silhouette_paths` says so on the thread:
   textures whose exact filter would repeat one pixel's walk for each of those paths read a
-  cheaper filter over the same footprint there.
+  cheaper filter over the same footprint there;
+* while ``pbrt_path`` asks one BSDF instance for its value towards the emitter sample and for a
+  sampled direction (both read the hit's textures), :func:`shared_lookups` lets a texture asked
+  twice at the same interaction compute its value once (:meth:`~mitsuba_pbrt_tex.texture.
+  PbrtTexture.eval`).
 """
 
 from __future__ import annotations
@@ -94,3 +98,22 @@ def silhouette_paths():
 def in_silhouette_paths() -> bool:
     """Whether the paths being traced are silhouette paths (:func:`silhouette_paths`)."""
     return bool(getattr(_STATE, 'silhouette', False))
+
+
+def shared_lookups():
+    """Within this block (on this thread) a texture asked again at an interaction it was asked
+    at before in the block reuses its first value on that query's lanes (see
+    :meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.eval`). The block must hold one recording:
+    ``pbrt_path`` wraps the two queries of one BSDF instance in it, inside ``dr.dispatch``, so
+    no value crosses from one instance's symbolic call to another's."""
+    return _on_thread('lookups', {})
+
+
+def lookups() -> dict | None:
+    """The :func:`shared_lookups` table of this thread, or None outside one."""
+    return getattr(_STATE, 'lookups', None)
+
+
+def unshared():
+    """Within this block no lookup is shared (a query's own remaining lanes)."""
+    return _on_thread('lookups', None)

@@ -21,7 +21,7 @@ from typing import Callable
 import drjit as dr
 import mitsuba as mi
 
-from . import variants
+from . import render_scope, variants
 from .differentials import TextureEvalContext
 from .params import Params
 
@@ -73,6 +73,13 @@ def uses_differentials(tex) -> bool:
         not type(tex).__module__.startswith('mitsuba.')
 
 
+@dataclass
+class _Shared:
+    """A lookup's value and the lanes it was computed on."""
+    value: object
+    active: object
+
+
 class PbrtTexture:
     """Shared behaviour of all ``pbrt_*`` textures (flattened into ``mi.Texture`` per variant)."""
 
@@ -115,13 +122,38 @@ class PbrtTexture:
         return TextureEvalContext.from_si(si)
 
     def eval(self, si, active=True):
-        return self.evaluate(si, SPECTRUM, mi.Bool(active))
+        return self._lookup(si, SPECTRUM, mi.Bool(active))
 
     def eval_1(self, si, active=True):
-        return self.evaluate(si, FLOAT, mi.Bool(active))
+        return self._lookup(si, FLOAT, mi.Bool(active))
 
     def eval_3(self, si, active=True):
-        return self.evaluate(si, RGB, mi.Bool(active))
+        return self._lookup(si, RGB, mi.Bool(active))
+
+    def _lookup(self, si, kind: Kind, active):
+        """:meth:`evaluate`, or within :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups`
+        — where a BSDF's ``eval`` and ``sample`` ask the same interaction (the same JIT variables)
+        — the first query's value on its lanes and :meth:`evaluate` only on the lanes it did not
+        cover, in a symbolic branch (packets with none skip it)."""
+        table = render_scope.lookups()
+        if table is None:
+            return self.evaluate(si, kind, active)
+        key = (id(self), kind.name, tuple(dr.detail.collect_indices(si)))
+        first = table.get(key)
+        if first is None:
+            value = self.evaluate(si, kind, active)
+            table[key] = _Shared(value, active)
+            return value
+        rest = active & ~first.active
+
+        def remaining(si, rest):
+            with render_scope.unshared():
+                return self.evaluate(si, kind, rest)
+
+        more = dr.if_stmt(args=(si, rest), cond=rest, true_fn=remaining,
+                          false_fn=lambda si, rest: dr.zeros(type(first.value)),
+                          label=f'{self.NAME}: lanes not yet looked up')
+        return dr.select(first.active, first.value, more)
 
     def nested_eval(self, name: str, si, kind: Kind, active):
         return kind.nested(self._nested[name], si, active)

@@ -61,11 +61,27 @@ import mitsuba as mi
 from mitsuba_pbrt_tex import film_view, pixel, raydiff, registry, silhouettes, variants
 from mitsuba_pbrt_tex.params import Params, PluginError
 from mitsuba_pbrt_tex.raydiff import RayDiff
-from mitsuba_pbrt_tex.render_scope import RenderScope, published, silhouette_paths
+from mitsuba_pbrt_tex.render_scope import (RenderScope, published, shared_lookups,
+                                           silhouette_paths)
 from mitsuba_pbrt_tex.scene_needs import SceneCache, SceneNeeds, TraceInputs
 
 #: depths are UInt32 in the loop and int32 in Mitsuba's C++ (-1 means unbounded)
 MAX_DEPTH = 2**31 - 1
+
+
+def bsdf_queries(bsdf, ctx, si, wo, active_em, sample1, sample2, active):
+    """A primal bounce's two BSDF queries — value and density towards the emitter sample
+    ``wo`` (lanes ``active_em``) and a sampled direction (lanes ``active``) — as one call per
+    BSDF instance, inside which a texture both queries read at the hit computes its value once
+    (:func:`~mitsuba_pbrt_tex.render_scope.shared_lookups`; Mitsuba's ``eval_pdf_sample``
+    evaluates it twice). Returns (value, density, BSDFSample3f, weight)."""
+    def both(instance, si, wo, active_em, sample1, sample2, active):
+        with shared_lookups():
+            value, pdf = instance.eval_pdf(ctx, si, wo, active_em)
+            bs, weight = instance.sample(ctx, si, sample1, sample2, active)
+        return value, pdf, bs, weight
+
+    return dr.dispatch(bsdf, both, si, wo, active_em, sample1, sample2, active=active)
 
 
 def _prb_helpers():
@@ -461,13 +477,20 @@ class Plugin:
                     em_weight = dr.replace_grad(em_weight, em_val * dr.detach(inv_pdf))
                     em_weight *= dr.relative_grad(J)
                 wo = si.to_local(ds.d)
-                bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+                if dr.hint(primal, mode='scalar'):
+                    # with the BSDF sample (same random numbers): the textures look up once
+                    bsdf_value_em, bsdf_pdf_em, bsdf_sample, bsdf_weight = bsdf_queries(
+                        bsdf, bsdf_ctx, si, wo, active_em, sampler.next_1d(),
+                        sampler.next_2d(), active_next)
+                else:
+                    bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
                 mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
                 Lr_dir = β * mis_em * bsdf_value_em * em_weight
 
             # ---- BSDF sampling (detached) --------------------------------------------------
-            bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(),
-                                                   sampler.next_2d(), active_next)
+            if dr.hint(not primal, mode='scalar'):
+                bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(),
+                                                       sampler.next_2d(), active_next)
             L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
             wo_world = si.to_world(bsdf_sample.wo)
             ray_next = si.spawn_ray(wo_world)

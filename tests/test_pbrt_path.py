@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import A
+from conftest import A, make_si
 
 T = mi.ScalarTransform4f
 
@@ -901,3 +901,99 @@ def test_sample_called_with_a_ray_without_differentials():
     L, valid = np.array(L.x), np.array(valid)
     assert valid.sum() > 20                             # the floor fills most of the view
     assert np.all(np.isfinite(L)) and L[valid].min() == 1.0
+
+
+# ---------------------------------------------------------------------------- shared lookups
+def _shared_texture_cornell(filter_):
+    """Mitsuba's Cornell box, 32×32, whose white (diffuse) and red (rough plastic) walls read one
+    image texture and whose green wall its own: two BSDF instances share a texture; the boxes'
+    shadows make emitter samples whose value query is masked off while the BSDF sample's is
+    not (pdf 0: occluded)."""
+    rng = np.random.default_rng(7)
+    texels = mi.TensorXf(rng.random((16, 16, 3)).astype(np.float32))
+    scene = mi.cornell_box()
+    shared = {'type': 'pbrt_imagemap', 'filter': filter_, 'data': texels,
+              'to_uv': T().scale([3, 3, 1])}
+    scene['tex'] = shared
+    scene['white'] = {'type': 'diffuse', 'reflectance': {'type': 'ref', 'id': 'tex'}}
+    scene['red'] = {'type': 'roughplastic', 'alpha': 0.2,
+                    'diffuse_reflectance': {'type': 'ref', 'id': 'tex'}}
+    scene['green'] = {'type': 'diffuse', 'reflectance': {**shared, 'filter': 'bilinear'}}
+    scene['sensor']['film']['width'] = scene['sensor']['film']['height'] = 32
+    return {**scene, 'integrator': {'type': 'pbrt_path', 'max_depth': 4}}
+
+
+@pytest.mark.parametrize('filter_', ['ewa', 'box'])
+def test_shared_lookups_change_no_pixel(filter_, monkeypatch):
+    """A primal bounce asks each BSDF instance for its value towards the emitter sample and for
+    a sampled direction in one call, and a texture both queries read computes its value once
+    (render_scope.shared_lookups). Against the same render with every lookup computed by its own
+    query (sharing switched off): equal to float32 rounding (rtol 1e-5, atol 1e-6, as the prb
+    comparisons) — on a scene where two BSDF instances share one texture (a value taken from
+    the wrong instance's call would change its walls) and where shadowed lanes are in the BSDF
+    sample's query only (left out, they would be black there)."""
+    import contextlib
+
+    from mitsuba_pbrt_tex import registry, render_scope
+    images, reused = [], []
+    unshared = render_scope.unshared
+
+    def counted():
+        reused.append(1)            # a lookup that found the first query's value
+        return unshared()
+
+    monkeypatch.setattr(render_scope, 'unshared', counted)
+    for shared in (True, False):
+        if not shared:
+            monkeypatch.setattr(registry.plugin_module('pbrt_path'), 'shared_lookups',
+                                contextlib.nullcontext)
+        scene = mi.load_dict(_shared_texture_cornell(filter_))
+        images.append(np.array(mi.render(scene, spp=4, seed=3)))
+        if shared:      # white, red, green: each instance's sample reused its eval's lookup
+            assert len(reused) == 3
+    assert images[1].mean() > 0.05
+    np.testing.assert_allclose(images[0], images[1], rtol=1e-5, atol=1e-6)
+
+
+def test_shared_lookup_evaluates_only_the_lanes_not_yet_looked_up(rng, monkeypatch):
+    """Within shared_lookups, a texture asked again at the same interaction returns the first
+    value on the first query's lanes and evaluates only the rest (counted by wrapping the
+    plugin's evaluate); its value equals an unshared lookup's on every lane asked; outside the
+    block nothing is shared."""
+    from mitsuba_pbrt_tex import render_scope
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': 'ewa',
+                        'data': mi.TensorXf(rng.random((8, 8, 3)).astype(np.float32))})
+    n = 400
+    si = make_si(rng.random((n, 2)), duv_dx=rng.normal(0, 0.05, (n, 2)),
+                 duv_dy=rng.normal(0, 0.05, (n, 2)))
+    first = rng.random(n) < 0.6
+    second = first | (rng.random(n) < 0.5)
+    plain = A(tex.eval(si, mi.Bool(second)))
+    counted = []
+    evaluate = type(tex).evaluate
+
+    def counting(self, si, kind, active):
+        counted.append(int(dr.count(active)[0]))
+        return evaluate(self, si, kind, active)
+
+    monkeypatch.setattr(type(tex), 'evaluate', counting)
+    with render_scope.shared_lookups():
+        tex.eval(si, mi.Bool(first))
+        value = A(tex.eval(si, mi.Bool(second)))
+    assert counted == [first.sum(), (second & ~first).sum()]
+    assert 0 < counted[1] < counted[0]
+    np.testing.assert_allclose(value[second], plain[second], rtol=1e-6, atol=1e-7)
+    # another texture, or the same one in another kind, at the same interaction: its own value
+    other = mi.load_dict({'type': 'pbrt_imagemap', 'filter': 'bilinear',
+                          'data': mi.TensorXf(rng.random((8, 8, 3)).astype(np.float32))})
+    with render_scope.shared_lookups():
+        tex.eval(si, mi.Bool(second))
+        others = A(other.eval(si, mi.Bool(second)))
+        grey = A(tex.eval_1(si, mi.Bool(second)))
+    np.testing.assert_allclose(others, A(other.eval(si, mi.Bool(second))), rtol=1e-6)
+    np.testing.assert_allclose(grey[second], A(tex.eval_1(si, mi.Bool(second)))[second],
+                               rtol=1e-6, atol=1e-7)
+    assert np.abs(others - value).max() > 0.1
+    assert render_scope.lookups() is None
+    tex.eval(si, mi.Bool(second))
+    assert counted[-1] == second.sum()
