@@ -150,10 +150,13 @@ def select_level(s0, t0, s1, t1, W: int, H: int):
 # ------------------------------------------------------------------------------------ frame
 @dataclass
 class _Texels:
-    """Reading texel (column, row) of the lane's level (float-valued integers, any range):
-    the level's first texel ``off``, its size ``(w, h)`` and the wrap's data."""
+    """Reading texel (column, row) of the lane's level in the walk's frame (float-valued
+    integers, any range) — the texture's own, or transposed (``swap``: walk columns are texture
+    rows): the level's first texel ``off``, the buffer strides of a walk row and column, the
+    walk frame's size ``(w, h)`` and the wrap's data."""
     off: object
-    iw: object
+    row_stride: object
+    col_stride: object
     w: object
     h: object
     inv_w: object
@@ -162,6 +165,20 @@ class _Texels:
     wrap: str
     buffer: object
     rgb: bool
+
+    @staticmethod
+    def of(mip, view, wrap: str, swap) -> '_Texels':
+        (w, h), (inv_w, inv_h) = view.size, view.inv_size
+        pow2 = not (mip.width & (mip.width - 1) or mip.height & (mip.height - 1))
+        mask = None
+        if pow2 and wrap == 'repeat':
+            mx, my = mi.Int32(view.mask[0]), mi.Int32(view.mask[1])
+            mask = (dr.select(swap, my, mx), dr.select(swap, mx, my))
+        iw = mi.UInt32(view.iw)
+        return _Texels(view.off, dr.select(swap, 1, iw), dr.select(swap, iw, 1),
+                       dr.select(swap, h, w), dr.select(swap, w, h),
+                       dr.select(swap, inv_h, inv_w), dr.select(swap, inv_w, inv_h), mask, wrap,
+                       mip.pyr.buffer, mip.channels == 3)
 
     def _wrap(self, v, n, inv_n, mask):
         if self.wrap == 'black':
@@ -172,18 +189,18 @@ class _Texels:
 
     def reading(self, buffer) -> '_Texels':
         """The same texels read through ``buffer`` (an alias of the pyramid's buffer)."""
-        return _Texels(self.off, self.iw, self.w, self.h, self.inv_w, self.inv_h, self.mask,
-                       self.wrap, buffer, self.rgb)
+        return _Texels(self.off, self.row_stride, self.col_stride, self.w, self.h, self.inv_w,
+                       self.inv_h, self.mask, self.wrap, buffer, self.rgb)
 
     def row(self, y):
-        """(first index of row y, validity)."""
+        """(first index of walk row y, validity)."""
         iy, ok = self._wrap(y, self.h, self.inv_h, None if self.mask is None else self.mask[1])
-        return self.off + iy * self.iw, ok
+        return dr.fma(iy, self.row_stride, self.off), ok
 
     def read(self, row, x, active):
         """Texel x of a row from :meth:`row`: Float or Color3f."""
         ix, ok = self._wrap(x, self.w, self.inv_w, None if self.mask is None else self.mask[0])
-        index = row[0] + ix
+        index = dr.fma(ix, self.col_stride, row[0])
         active = active & ok & row[1]
         if self.rgb:
             v = dr.gather(mi.Array4f, self.buffer, index, active)
@@ -235,6 +252,13 @@ def _frame(mip, wrap, st, dst0, dst1, active) -> _Frame:
     # a footprint inside one cell (magnification): closed form, no loop
     in_cell = ((dr.floor(cx - hx) == dr.floor(cx + hx)) & (dr.floor(cy - hy) == dr.floor(cy + hy))
                & ~degenerate & active)
+    # the walk's rows along the footprint's longer extent: fewer chords (one per row entered)
+    swap = hy > hx
+    cx, cy, ax, ay, bx, by, hx, hy = (dr.select(swap, q, p) for p, q in
+                                      ((cx, cy), (cy, cx), (ax, ay), (ay, ax), (bx, by),
+                                       (by, bx), (hx, hy), (hy, hx)))
+    texels = _Texels.of(mip, view, wrap, swap)
+    w, h = texels.w, texels.h
     cx, cy = _near_image(cx, cy, hx, hy, w, h, wrap)
     X0, Y0 = dr.floor(cx), dr.floor(cy)
     cx, cy = cx - X0, cy - Y0
@@ -242,12 +266,6 @@ def _frame(mip, wrap, st, dst0, dst1, active) -> _Frame:
     T = (2 * cx - B[0], 2 * cy - B[1])                  # opposite corners: B + T = 2·centre
     L = (2 * cx - R[0], 2 * cy - R[1])
     run = active & ~degenerate & ~beyond & ~in_cell
-    pow2 = not (mip.width & (mip.width - 1) or mip.height & (mip.height - 1))
-    mask = view.mask if (pow2 and wrap == 'repeat') else None
-    if mask is not None and view.static:
-        mask = (mi.Int32(mask[0]), mi.Int32(mask[1]))
-    texels = _Texels(view.off, view.iw, w, h, view.inv_size[0], view.inv_size[1], mask, wrap,
-                     mip.pyr.buffer, mip.channels == 3)
     return _Frame(level, texels, X0, Y0, B, R, T, L, run, in_cell, degenerate, beyond)
 
 
