@@ -10,7 +10,8 @@ table beyond the pyramid (:func:`build_box_tables` returns aliases of its buffer
 :class:`BoxTables`).
 
 How (per lane, at one level, in texel coordinates with texel centres at integers, relative to an
-integer origin next to the footprint's centre):
+integer origin next to the footprint's centre; in the texture's frame or its transpose, whichever
+makes the rows run along the footprint's longer extent, so that fewer rows need a chord):
 
 * Green's theorem turns the area integral into ``∮ F dy`` with ``F(x, y) = ∫ f dx`` an
   antiderivative of the reconstruction along rows: between texel rows ``j`` and ``j+1`` (a
@@ -48,7 +49,7 @@ integer origin next to the footprint's centre):
 
 Cost and level: the walk's iterations are about the footprint's Manhattan perimeter in texels of
 its level (one per knot and band crossed), the chords' about a quarter of its area plus its
-height — about 45 and 9 for an 8:1 footprint 1.5 texels across. The level is the finest at which
+shorter extent — about 45 and 9 for an 8:1 footprint 1.5 texels across. The level is the finest at which
 the footprint's short side (its smaller height, area / longest side) is at most
 :data:`MAX_BANDS` texels and its Manhattan perimeter at most :data:`MAX_PERIMETER` texels — level
 0 (exact for the image itself) while both hold at level 0, whatever the orientation; beyond, the
