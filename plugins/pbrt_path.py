@@ -38,6 +38,10 @@ renders and differentiates exactly as ``prb``, same random numbers):
 * the loop state is only what changes from bounce to bounce (read-only inputs excluded,
   optional state ``None`` where it would stay constant, the rays' time broadcast) and primal
   renders turn ``OptimizeLoops`` off, so Dr.Jit records the loop once (``prb``: twice);
+* primal bounces ask each BSDF instance for the emitter sample's value and for a sampled
+  direction in one ``dr.dispatch`` (:func:`bsdf_queries`, same random numbers), so that a
+  texture both queries read computes its value at the hit once (``prb``, as Mitsuba's BSDFs'
+  ``eval_pdf_sample``, evaluates it in each);
 * optional AOVs with the first hit's uv partials;
 * ``footprint="pixel"``: the render is one :class:`~mitsuba_pbrt_tex.render_scope.RenderScope`,
   published to the textures while the loop is traced (:mod:`mitsuba_pbrt_tex.pixel` computes
