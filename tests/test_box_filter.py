@@ -135,6 +135,27 @@ def test_nearly_axis_aligned_footprints_end_and_match_polygon_clipping(rng):
     np.testing.assert_allclose(got, want, atol=1e-5)
 
 
+def test_power_of_two_repeat_of_a_non_square_image_in_either_frame(rng):
+    """A 32×8 image (power-of-two sides: repeat wraps by bit masks, one per axis) with
+    footprints both taller and wider than they are across (the walk's frame transposed for
+    the tall ones, its masks with it), reaching over the image's edges: equal to polygon
+    clipping (atol 1e-5, as above)."""
+    img = rng.random((8, 32, 3))
+    tex = imagemap(img, wrap='repeat')
+    n = 24
+    uv = f32(rng.uniform(-0.5, 1.5, (n, 2)))
+    d0, d1 = footprints(rng, n, rng.uniform(0.5, 6.0, n), rng.choice([1.0, 4.0, 8.0], n), 32)
+    d0[:, 1], d1[:, 1] = 4 * d0[:, 1], 4 * d1[:, 1]           # texel units alike on both axes
+    got = A(tex.eval_3(make_si(uv, d0, d1)))
+    want = np.array([rbox.box_average(img, uv[k, 0], uv[k, 1], d0[k], d1[k], 'repeat')
+                     for k in range(n)])
+    for k in range(n):
+        assert expected_level(img.shape[:2], d0[k], d1[k], 4) == 0
+    taller = np.abs(d0[:, 1] * 8) + np.abs(d1[:, 1] * 8) > np.abs(d0[:, 0] * 32) + np.abs(d1[:, 0] * 32)
+    assert 3 <= taller.sum() <= n - 3
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
 def test_far_from_the_origin_keeps_float32_digits(rng):
     """A 1024² image, lookups near its far corner (positions up to 1024 texels): each value is an
     integral over texels near the footprint, so nothing grows with the position. With a
