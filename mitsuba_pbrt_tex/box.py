@@ -49,8 +49,8 @@ makes the rows run along the footprint's longer extent, so that fewer rows need 
 
 Cost and level: the walk's iterations are about the footprint's Manhattan perimeter in texels of
 its level (one per knot and band crossed), the chords' about a quarter of its area plus its
-shorter extent — about 45 and 9 for an 8:1 footprint 1.5 texels across. The level is the finest at which
-the footprint's short side (its smaller height, area / longest side) is at most
+shorter extent — about 45 and 9 for an 8:1 footprint 1.5 texels across. The level is the finest
+at which the footprint's short side (its smaller height, area / longest side) is at most
 :data:`MAX_BANDS` texels and its Manhattan perimeter at most :data:`MAX_PERIMETER` texels — level
 0 (exact for the image itself) while both hold at level 0, whatever the orientation; beyond, the
 exact average of a coarser level's reconstruction (as every MIP filter, blurred by that level's

@@ -69,12 +69,12 @@ PERSPECTIVE_LIMIT = 0.5
 #: Box-film camera samples are kept this many pixels inside their pixel's edges.
 EDGE_MARGIN = 1e-3
 #: A box-film pixel whose larger perspective term exceeds this is cut into strips across it, each
-#: a pixel footprint of its own with a term at most this (:func:`strips`). On the bench's grazing
-#: plane 1/8 left rows 11, 20 and 24 below the far edge (terms 1/32 to 1/8, checks a few texels
-#: wide) at 1.5–1.6× the reference's noise; 1/32 brings every row to 0.9–1.2×.
+#: a pixel footprint of its own with a term at most this (:func:`strips`): small enough that the
+#: parallelogram's second-order shape error stays below a converged pixel's noise where a pixel
+#: spans a few texels of detail (README, *Pixel footprints*).
 STRIP_PERSPECTIVE = 1.0 / 32.0
 #: At most this many strips (a kernel holds this many lookups of an opting-in texture; each
-#: strip is a whole lookup: 2 costs the grazing frame +18%, 4 +68%).
+#: strip is a whole lookup, so this bounds the cost of the pixels nearest the horizon).
 MAX_STRIPS = 2
 
 
