@@ -18,7 +18,8 @@ makes the rows run along the footprint's longer extent, so that fewer rows need 
   *band*), ``f`` is the linear blend of the two rows' piecewise-linear interpolants, so ``F =
   (1-τ)·Q_j(x) + τ·Q_{j+1}(x)``, ``τ = y - j``, with ``Q_j`` an antiderivative of row ``j``. The
   boundary is walked counter-clockwise from the lowest corner ``B``: up the right chain to the
-  highest corner ``T``, down the left chain back to ``B``.
+  highest corner ``T``, down the left chain back to ``B`` (:func:`.outline.walk`, the walk the
+  checkerboard's ``area`` mode takes too; here cut at knots as well as band boundaries).
 * Each row's constant is chosen where it enters the footprint (its lower band boundary, or
   ``B``): ``Q_j = 0`` on the left chain there and ``Q_j`` = the row's integral across the
   footprint (the *chord*, from the left chain to the right one) on the right chain. So every
@@ -75,6 +76,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .outline import Outline, Parallelogram, Piece, walk
 from .wrap import COORD_LIMIT, wrap_1d
 
 #: The level's short side (area / longest side) is at most this many texels.
@@ -211,19 +213,14 @@ class _Texels:
 
 @dataclass
 class _Frame:
-    """One lane's footprint at its level, relative to the integer origin ``(X0, Y0)``: the
-    lowest corner ``B``, the right chain's middle corner ``R``, the highest corner ``T``, the
-    left chain's middle corner ``L`` (counter-clockwise B, R, T, L), and which lanes take which
-    path (``run``: the walk; ``in_cell``, ``degenerate``, ``beyond``:
-    closed forms)."""
+    """One lane's footprint at its level, relative to the integer origin ``(X0, Y0)``, in the
+    walk's frame (:class:`_Texels`), and which lanes take which path (``run``: the walk;
+    ``in_cell``, ``degenerate``, ``beyond``: closed forms)."""
     level: object
     texels: _Texels
     X0: object
     Y0: object
-    B: tuple
-    R: tuple
-    T: tuple
-    L: tuple
+    outline: Outline
     run: object
     in_cell: object
     degenerate: object
@@ -236,7 +233,7 @@ def _finite(x):
 
 
 def _frame(mip, wrap, st, dst0, dst1, active) -> _Frame:
-    """The level and the footprint's corners in the level's texels, per lane."""
+    """The level and the footprint's outline in the level's texels, per lane."""
     s0, t0, s1, t1 = _finite(dst0.x), _finite(dst0.y), _finite(dst1.x), _finite(dst1.y)
     want, area0 = select_level(s0, t0, s1, t1, mip.width, mip.height)
     degenerate = ~(area0 > MIN_AREA)
@@ -247,91 +244,35 @@ def _frame(mip, wrap, st, dst0, dst1, active) -> _Frame:
     w, h = view.size
     sx = dr.clip(_finite(st.x), -COORD_LIMIT, COORD_LIMIT)
     sy = dr.clip(_finite(st.y), -COORD_LIMIT, COORD_LIMIT)
-    cx, cy = dr.fma(sx, w, -0.5), dr.fma(sy, h, -0.5)
-    ax, ay, bx, by = s0 * w, t0 * h, s1 * w, t1 * h
-    hx, hy = 0.5 * (dr.abs(ax) + dr.abs(bx)), 0.5 * (dr.abs(ay) + dr.abs(by))
+    p = Parallelogram(mi.Point2f(dr.fma(sx, w, -0.5), dr.fma(sy, h, -0.5)),
+                      mi.Vector2f(s0 * w, t0 * h), mi.Vector2f(s1 * w, t1 * h))
+    c, half = p.c, p.half_extent()
     # a footprint inside one cell (magnification): closed form, no loop
-    in_cell = ((dr.floor(cx - hx) == dr.floor(cx + hx)) & (dr.floor(cy - hy) == dr.floor(cy + hy))
-               & ~degenerate & active)
+    in_cell = ((dr.floor(c.x - half.x) == dr.floor(c.x + half.x)) &
+               (dr.floor(c.y - half.y) == dr.floor(c.y + half.y)) & ~degenerate & active)
     # the walk's rows along the footprint's longer extent: fewer chords (one per row entered)
-    swap = hy > hx
-    cx, cy, ax, ay, bx, by, hx, hy = (dr.select(swap, q, p) for p, q in
-                                      ((cx, cy), (cy, cx), (ax, ay), (ay, ax), (bx, by),
-                                       (by, bx), (hx, hy), (hy, hx)))
+    swap = p.taller()
+    p = p.transposed(swap)
     texels = _Texels.of(mip, view, wrap, swap)
-    w, h = texels.w, texels.h
-    cx, cy = _near_image(cx, cy, hx, hy, w, h, wrap)
-    X0, Y0 = dr.floor(cx), dr.floor(cy)
-    cx, cy = cx - X0, cy - Y0
-    B, R = _lowest_corner(cx, cy, ax, ay, bx, by)
-    T = (2 * cx - B[0], 2 * cy - B[1])                  # opposite corners: B + T = 2·centre
-    L = (2 * cx - R[0], 2 * cy - R[1])
+    c = _near_image(p.c, p.half_extent(), texels.w, texels.h, wrap)
+    origin = dr.floor(c)
     run = active & ~degenerate & ~beyond & ~in_cell
-    return _Frame(level, texels, X0, Y0, B, R, T, L, run, in_cell, degenerate, beyond)
+    return _Frame(level, texels, origin.x, origin.y, p.moved(c - origin).outline(), run, in_cell,
+                  degenerate, beyond)
 
 
-def _near_image(cx, cy, hx, hy, w, h, wrap):
+def _near_image(c, half, w, h, wrap):
     """The footprint's centre moved by whole periods (repeat, mirror) into the first one, or
     (clamp, black) no farther than its half extent beyond the knots next to the image, where the
     reconstruction is constant along that axis: the same average, small coordinates."""
     if wrap in ('repeat', 'mirror'):
         n = 1 if wrap == 'repeat' else 2
-        return cx - dr.floor(cx / (n * w)) * (n * w), cy - dr.floor(cy / (n * h)) * (n * h)
-    return dr.clip(cx, -1 - hx, w + hx), dr.clip(cy, -1 - hy, h + hy)
-
-
-def _lowest_corner(cx, cy, ax, ay, bx, by):
-    """The lowest corner of the parallelogram and the next one counter-clockwise."""
-    hx0, hy0, hx1, hy1 = 0.5 * ax, 0.5 * ay, 0.5 * bx, 0.5 * by
-    corners = [(cx - hx0 - hx1, cy - hy0 - hy1), (cx + hx0 - hx1, cy + hy0 - hy1),
-               (cx + hx0 + hx1, cy + hy0 + hy1), (cx - hx0 + hx1, cy - hy0 + hy1)]
-    ccw = ax * by - ay * bx >= 0
-    # clockwise: the same corners in the other order
-    corners[1], corners[3] = ([tuple(dr.select(ccw, p, q) for p, q in zip(corners[1], corners[3])),
-                               tuple(dr.select(ccw, q, p) for p, q in zip(corners[1], corners[3]))])
-    k, best = mi.UInt32(0), corners[0][1]
-    for m in (1, 2, 3):
-        lower = corners[m][1] < best
-        k = dr.select(lower, m, k)
-        best = dr.select(lower, corners[m][1], best)
-
-    def pick(idx):
-        out = corners[3]
-        for m in (2, 1, 0):
-            out = tuple(dr.select(idx == m, p, q) for p, q in zip(corners[m], out))
-        return out
-
-    return pick(k), pick((k + 1) & 3)
+        return mi.Point2f(c.x - dr.floor(c.x / (n * w)) * (n * w),
+                          c.y - dr.floor(c.y / (n * h)) * (n * h))
+    return mi.Point2f(dr.clip(c.x, -1 - half.x, w + half.x), dr.clip(c.y, -1 - half.y, h + half.y))
 
 
 # ------------------------------------------------------------------------------------ geometry
-@dataclass
-class _Edges:
-    """The four edges counter-clockwise: 0 = B→R, 1 = R→T (the right chain, upwards), 2 = T→L,
-    3 = L→B (the left chain, downwards): start points, directions and their reciprocals (0 where
-    a component is 0)."""
-    start: list
-    d: list
-    inv: list
-
-    @staticmethod
-    def of(f: _Frame) -> '_Edges':
-        corners = [f.B, f.R, f.T, f.L]
-        d = [(q[0] - p[0], q[1] - p[1]) for p, q in zip(corners, corners[1:] + corners[:1])]
-        inv = [tuple(dr.select(c != 0, dr.rcp(c), 0.0) for c in v) for v in d]
-        return _Edges(corners, d, inv)
-
-    def pick(self, e):
-        """Edge e's start, direction and reciprocals (the walk and :func:`_chain_x` read the
-        same values, so a row's chord starts where the walk meets the row, to the last bit)."""
-        def sel(items):
-            odd = (e & 1) == 1
-            lo = tuple(dr.select(odd, p, q) for p, q in zip(items[1], items[0]))
-            hi = tuple(dr.select(odd, p, q) for p, q in zip(items[3], items[2]))
-            return tuple(dr.select(e >= 2, p, q) for p, q in zip(hi, lo))
-        return sel(self.start), sel(self.d), sel(self.inv)
-
-
 @dataclass
 class _Remaining:
     """The remaining tent weights of a band's two rows as functions of the height z ∈ [0, 1]
@@ -362,44 +303,6 @@ def _hat_cdf(z):
     return dr.fma(z, dr.fma(dr.abs(z), -0.5, 1.0), 0.5)
 
 
-@dataclass
-class _Step:
-    """Where an iteration of the walk goes on its edge: to param ``s1`` and point ``(x1, y1)``,
-    because of a knot (``knot``, in direction ``right``), a band boundary (``band``) or the
-    edge's end (``end``)."""
-    s1: object
-    x1: object
-    y1: object
-    knot: object
-    band: object
-    end: object
-    right: object
-
-
-def _next_event(start, d, inv, s, i, j, up) -> _Step:
-    """The next knot, band boundary or end along the edge from param ``s`` in cell (i, j)
-    (``up``: the edge goes upwards, else downwards)."""
-    right = d[0] > 0
-    knot_x = dr.select(right, i + 1, i)
-    band_y = dr.select(up, j + 1, j)
-    sk = dr.select(d[0] != 0, (knot_x - start[0]) * inv[0], dr.inf)
-    # band boundaries only in the chain's direction: corners opposite each other come from the
-    # centre (rounded), so a side of a nearly axis-aligned footprint can run an ulp the other
-    # way, and its next boundary would then lie behind it, for ever
-    along = dr.select(up, d[1] > 0, d[1] < 0)
-    sb = dr.select(along, (band_y - start[1]) * inv[1], dr.inf)
-    first = dr.minimum(sk, sb)
-    end = ~(first < 1)
-    band = ~end & (sb <= sk)
-    knot = ~end & ~band
-    s1 = dr.clip(first, s, 1.0)
-    x1 = dr.select(knot, knot_x, dr.fma(s1, d[0], start[0]))
-    y1 = dr.select(band, band_y, dr.fma(s1, d[1], start[1]))
-    x1 = dr.select(end, start[0] + d[0], x1)
-    y1 = dr.select(end, start[1] + d[1], y1)
-    return _Step(s1, dr.clip(x1, i, i + 1), dr.clip(y1, j, j + 1), knot, band, end, right)
-
-
 def _piece_weights(x, y, x1, y1, i, j, rem: _Remaining):
     """Weights of texels (i, j), (i+1, j), (i, j+1), (i+1, j+1) for the walk's piece from
     (x, y) to (x1, y1) inside cell (i, j). Along the chain, a row's antiderivative gains
@@ -420,17 +323,6 @@ def _piece_weights(x, y, x1, y1, i, j, rem: _Remaining):
     return out
 
 
-def _chain_x(f: _Frame, edges: _Edges, chain: int, y):
-    """x of the right (0) or left (1) chain at height y (strictly between B and T)."""
-    middle = f.R if chain == 0 else f.L
-    lower, upper = (0, 1) if chain == 0 else (3, 2)
-    on_lower = y <= middle[1]
-    p = [dr.select(on_lower, a, b) for a, b in zip(edges.start[lower], edges.start[upper])]
-    dx = dr.select(on_lower, edges.d[lower][0], edges.d[upper][0])
-    inv_dy = dr.select(on_lower, edges.inv[lower][1], edges.inv[upper][1])
-    return dr.fma((y - p[1]) * inv_dy, dx, p[0])
-
-
 # ------------------------------------------------------------------------------------ lookup
 def box(mip, tables: BoxTables, st, dst0, dst1, active):
     """The exact box-filtered value at ``st`` for the footprint spanned by ``dst0 = (ds/dx,
@@ -439,10 +331,9 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
         raise ValueError('the box filter needs every level of the MIP pyramid')
     active = mi.Bool(active)
     f = _frame(mip, tables.wrap, st, dst0, dst1, active)
-    edges = _Edges.of(f)
     value_type = mip.value_type()
-    acc, area = _walk(f, edges, f.texels.reading(tables.walk), value_type)
-    acc_c, area_c = _chords(f, edges, f.texels.reading(tables.chords), value_type)
+    acc, area = _walk(f, f.texels.reading(tables.walk), value_type)
+    acc_c, area_c = _chords(f, f.texels.reading(tables.chords), value_type)
     # divided by the weights' own sum, the area of the polygon the walk integrated (its corners
     # and crossings rounded to float32): a constant texture averages to itself exactly, and a
     # thin footprint's area is not cancelled away against another rounding
@@ -488,57 +379,43 @@ def _leaving(w, knot, right, band, up) -> _Leaving:
                     dr.select(kr, w[2], dr.select(knot | bd, w[3], w[1])), kept)
 
 
-def _walk(f: _Frame, edges: _Edges, tex: _Texels, value_type):
+def _walk(f: _Frame, tex: _Texels, value_type):
     """∮ F dy counter-clockwise: up the right chain, down the left one (lanes ``f.run``),
-    without the chords. Each texel of the cell's 2×2 block collects its weight while the walk
-    stays next to it and is read once, when it leaves the block (a knot or band crossed; back at
-    B the lower row, then — edge 4, a flush — the upper one)."""
-    def body(e, s, x, y, i, j, w, acc, area):
-        start, d, inv = edges.pick(e)
-        up = e < 2
-        step = _next_event(start, d, inv, s, i, j, up)
-        walking = e < 4
-        x1 = dr.select(walking, step.x1, x)             # the flush stays put: no piece
-        y1 = dr.select(walking, step.y1, y)
-        piece = _piece_weights(x, y, x1, y1, i, j, _Remaining.of(f.T[1] - j))
-        w = [c + p for p, c in zip(piece, w)]
-        knot = walking & step.knot
-        closed = (walking & step.end & (e == 3)) | ~walking     # back at B: flush the block
-        band = (walking & step.band) | closed
-        rising = up | closed
-        out = _leaving(w, knot, step.right, band, rising)
+    without the chords, cut at knots and band boundaries. Each texel of the cell's 2×2 block
+    collects its weight while the walk stays next to it and is read once, when it leaves the
+    block (a knot or band crossed; back at B the lower row, then — the flush — the upper one)."""
+    top = f.outline.T.y
+
+    def integrand(p: Piece, w, acc, area):
+        piece = _piece_weights(p.x, p.y, p.x1, p.y1, p.i, p.j, _Remaining.of(top - p.j))
+        w = [c + q for q, c in zip(piece, w)]
+        out = _leaving(w, p.knot, p.right, p.band, p.rising)
+        crossed = p.knot | p.band
         for col, row, wt in ((out.col_a, out.row_a, out.w_a), (out.col_b, out.row_b, out.w_b)):
-            v = tex.read(tex.row(f.Y0 + j + row), f.X0 + i + col, knot | band)
+            v = tex.read(tex.row(f.Y0 + p.j + row), f.X0 + p.i + col, crossed)
             acc = dr.fma(v, wt, acc)
-            area = area + dr.select(knot | band, wt, 0.0)     # (black: outside texels too)
-        # the walk moves on
-        i_n = dr.select(knot, dr.select(step.right, i + 1, i - 1), i)
-        j_n = dr.select(band, dr.select(rising, j + 1, j - 1), j)
-        next_edge = (walking & step.end) | ~walking
-        return (dr.select(next_edge, e + 1, e), dr.select(next_edge, 0.0, step.s1), x1, y1,
-                i_n, j_n, out.kept, acc, area)
+            area = area + dr.select(crossed, wt, 0.0)     # (black: outside texels too)
+        return out.kept, acc, area
 
     zero = mi.Float(0)
-    state = (mi.UInt32(0), zero, f.B[0], f.B[1], dr.floor(f.B[0]), dr.floor(f.B[1]),
-             [zero] * 4, dr.zeros(value_type), zero)
-    # every iteration ends the edge or moves to the next knot or band towards its end: at most
-    # |Δx| + |Δy| + 3 per edge (a NaN ends it), so no step count is needed
-    return dr.while_loop(state, lambda e, *_: f.run & (e < 5), body, max_iterations=-1,
-                         label='pbrt_box_walk')[-2:]
+    return walk(f.outline, f.run, integrand, ([zero] * 4, dr.zeros(value_type), zero),
+                knots=True, flush=True, label='pbrt_box_walk')[1:]
 
 
-def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
+def _chords(f: _Frame, tex: _Texels, value_type):
     """The right chain's row constants: at every band boundary y strictly between B and T, the
     row entering there (y + 1) integrated from the left chain to the right one, times its tent
     weight over the rest of the footprint — four knots per iteration."""
 
+    top = f.outline.T.y
+
     def cond(y, k, acc, area):
-        return f.run & (y < f.T[1])
+        return f.run & (y < top)
 
     def body(y, k, acc, area):
-        xa, xb = _chain_x(f, edges, 1, y), _chain_x(f, edges, 0, y)
+        xa, xb = f.outline.chain_x(False, y), f.outline.chain_x(True, y)
         lo, hi = dr.floor(dr.minimum(xa, xb)), dr.ceil(dr.maximum(xa, xb))
-        omega = _Remaining.of(f.T[1] - y).hi
+        omega = _Remaining.of(top - y).hi
         row = tex.row(f.Y0 + y + 1)
         for m in range(4):
             knot = lo + k + m
@@ -549,7 +426,7 @@ def _chords(f: _Frame, edges: _Edges, tex: _Texels, value_type):
         return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), acc, area
 
     # ends: k grows by 4 up to the chord's last knot, then y by 1 up to T
-    state = (dr.floor(f.B[1]) + 1, mi.Float(0), dr.zeros(value_type), mi.Float(0))
+    state = (dr.floor(f.outline.B.y) + 1, mi.Float(0), dr.zeros(value_type), mi.Float(0))
     return dr.while_loop(state, cond, body, max_iterations=-1, label='pbrt_box_chords')[-2:]
 
 

@@ -19,7 +19,8 @@ its own, so ``w = (1 - Π E[c(x_i)]) / 2`` exactly, for any dimension:
   pixel-centred like it under ``pbrt_path`` ``footprint="pixel"``), not over a bounding square.
   Not separable, so not a product of 1D means: Green's theorem turns the area integral of
   ``c(x)·c(y)`` into ``∮ S(x)·c(y) dy`` around the four edges, with ``S`` the integral of the
-  square wave (a triangle wave). Each edge is cut where it crosses a cell row (``c(y)`` is
+  square wave (a triangle wave), walked counter-clockwise (:func:`.outline.walk`, as the
+  ``box`` image filter's integral). Each edge is cut where it crosses a cell row (``c(y)`` is
   constant between) and, on a piece that moves less than a quarter cell along x, where it
   crosses a cell column (``S`` is linear between, and the trapezoid rule is exact); longer pieces
   use ``S``'s own integral in closed form. The rows are those of the footprint's shorter axis
@@ -46,6 +47,8 @@ from __future__ import annotations
 import drjit as dr
 
 import mitsuba as mi
+
+from .outline import Parallelogram, Piece, walk
 
 AAMODES = ('none', 'box', 'closedform', 'triangle', 'area')
 #: ``area``: footprints crossing more cell rows than this along their shorter axis (their mean
@@ -149,71 +152,46 @@ def _triangle_integral(x):
     return half + dr.select(m <= 1, 0.5 * m * m, 1 - 0.5 * (2 - m) * (2 - m))
 
 
-def _edge_integral(ax, ay, bx, by, max_pieces: int):
-    """∫ S(x) c(y) dy along the segment (ax, ay) → (bx, by), cut at the cell rows it crosses."""
-    dy, dx = by - ay, bx - ax
-    up = dy > 0
-    moving = dy != 0
-    inv_dy = dr.select(moving, dr.rcp(dy), 0)
-
-    def cond(y, x, acc, k):
-        return moving & (y != by) & (k < max_pieces)
-
-    def body(y, x, acc, k):
-        y_next = dr.select(up, dr.minimum(dr.floor(y) + 1, by), dr.maximum(dr.ceil(y) - 1, by))
-        last = y_next == by
-        x_next = dr.select(last, bx, dr.fma((y_next - ay) * inv_dy, dx, ax))
-        sign = square_wave(0.5 * (y + y_next))
-        run = x_next - x
-        # long pieces: the closed form of ∫ S; short ones: trapezoids on each side of the one
-        # column they may cross (S is linear between columns)
-        long_part = (_triangle_integral(x_next) - _triangle_integral(x)) / \
-            dr.select(dr.abs(run) >= 0.25, run, 1)
-        col = dr.maximum(dr.floor(x), dr.floor(x_next))
-        crosses = dr.floor(x) != dr.floor(x_next)
-        frac = dr.select(crosses, (col - x) / dr.select(run != 0, run, 1), 1)
-        s_x, s_next, s_col = _triangle(x), _triangle(x_next), _triangle(col)
-        short_part = dr.select(crosses,
-                               0.5 * (s_x + s_col) * frac + 0.5 * (s_col + s_next) * (1 - frac),
-                               0.5 * (s_x + s_next))
-        mean_s = dr.select(dr.abs(run) >= 0.25, long_part, short_part)
-        return y_next, x_next, dr.fma(sign * mean_s, y_next - y, acc), k + 1
-
-    _, _, acc, _ = dr.while_loop((ay, ax, mi.Float(0), mi.UInt32(0)), cond, body,
-                                 label='pbrt_checkerboard (area)')
-    return acc
+def _piece_integral(p: Piece, acc):
+    """``∫ S(x) c(y) dy`` along one piece of the walk (c(y) is constant in the band): long pieces
+    by the closed form of ``∫ S``, short ones by trapezoids on each side of the one column they
+    may cross (S is linear between columns)."""
+    x, x1 = p.x, p.x1
+    run = x1 - x
+    long = dr.abs(run) >= 0.25
+    long_part = (_triangle_integral(x1) - _triangle_integral(x)) / dr.select(long, run, 1)
+    col = dr.maximum(dr.floor(x), dr.floor(x1))
+    crosses = dr.floor(x) != dr.floor(x1)
+    frac = dr.select(crosses, (col - x) / dr.select(run != 0, run, 1), 1)
+    s_x, s_next, s_col = _triangle(x), _triangle(x1), _triangle(col)
+    short_part = dr.select(crosses,
+                           0.5 * (s_x + s_col) * frac + 0.5 * (s_col + s_next) * (1 - frac),
+                           0.5 * (s_x + s_next))
+    mean_s = dr.select(long, long_part, short_part)
+    return (dr.fma(square_wave(p.j + 0.5) * mean_s, p.y1 - p.y, acc),)
 
 
 def area_mean(st, d0, d1):
     """(mean of c(s)·c(t) over ``st + a·d0 + b·d1``, a, b ∈ [-1/2, 1/2]; where it was
     computed): False for degenerate, non-finite or too wide footprints."""
-    sx, sy = _finite(st[0]), _finite(st[1])
-    e0x, e0y, e1x, e1y = (_finite(v) for v in (d0[0], d0[1], d1[0], d1[1]))
+    p = Parallelogram(mi.Point2f(_finite(st[0]), _finite(st[1])),
+                      mi.Vector2f(_finite(d0[0]), _finite(d0[1])),
+                      mi.Vector2f(_finite(d1[0]), _finite(d1[1])))
     # rows along the shorter axis (swapping x and y leaves c(x)·c(y) unchanged)
-    swap = dr.abs(e0x) + dr.abs(e1x) < dr.abs(e0y) + dr.abs(e1y)
-    sx, sy = dr.select(swap, sy, sx), dr.select(swap, sx, sy)
-    e0x, e0y = dr.select(swap, e0y, e0x), dr.select(swap, e0x, e0y)
-    e1x, e1y = dr.select(swap, e1y, e1x), dr.select(swap, e1x, e1y)
-    # relative to the lattice point nearest the centre, (X, Y): small numbers, exact, so that a
+    p = p.transposed(p.taller())
+    # relative to the lattice point nearest the centre: small numbers, exact, so that a
     # footprint much smaller than a cell keeps its shape. Moving the origin by one cell flips
     # c and turns S into 1 - S; the constant integrates to 0 around the closed outline
     # (∮ c(y) dy = 0), so the integral only changes sign: by c(X + 1/2)·c(Y + 1/2)
-    lattice_x, lattice_y = dr.round(sx), dr.round(sy)
-    sign = square_wave(lattice_x + 0.5) * square_wave(lattice_y + 0.5)
-    sx, sy = sx - lattice_x, sy - lattice_y
-    det = e0x * e1y - e0y * e1x                     # signed area of the corner order below
-    rows = dr.abs(e0y) + dr.abs(e1y)
-    ok = (dr.abs(det) > 1e-12 * dr.maximum(rows * rows, 1e-30)) & (rows <= AREA_MAX_ROWS) & \
-        dr.isfinite(det)
-    hx0, hy0, hx1, hy1 = 0.5 * e0x, 0.5 * e0y, 0.5 * e1x, 0.5 * e1y
-    corners = [(sx - hx0 - hx1, sy - hy0 - hy1), (sx + hx0 - hx1, sy + hy0 - hy1),
-               (sx + hx0 + hx1, sy + hy0 + hy1), (sx - hx0 + hx1, sy - hy0 + hy1)]
-    zero = mi.Float(0)
-    total = mi.Float(0)
-    pieces = AREA_MAX_ROWS + 2
-    for k in range(4):
-        (ax, ay), (bx, by) = corners[k], corners[(k + 1) % 4]
-        total += _edge_integral(dr.select(ok, ax, zero), dr.select(ok, ay, zero),
-                                dr.select(ok, bx, zero), dr.select(ok, by, zero), pieces)
-    mean = dr.clip(sign * total / dr.select(ok, det, 1), -1, 1)
+    lattice = dr.round(p.c)
+    sign = square_wave(lattice.x + 0.5) * square_wave(lattice.y + 0.5)
+    p = p.moved(p.c - lattice)
+    area = dr.abs(p.det())
+    rows = 2 * p.half_extent().y
+    ok = (area > 1e-12 * dr.maximum(rows * rows, 1e-30)) & (rows <= AREA_MAX_ROWS) & \
+        dr.isfinite(area)
+    # counter-clockwise: ∮ S(x) c(y) dy = the integral of c(x) c(y) over the footprint
+    total, = walk(p.outline(), ok, _piece_integral, (mi.Float(0),), knots=False, flush=False,
+                  label='pbrt_checkerboard (area)')
+    mean = dr.clip(sign * total / dr.select(ok, area, 1), -1, 1)
     return mean, ok
