@@ -79,8 +79,10 @@ import mitsuba as mi
 from .outline import Outline, Parallelogram, Piece, walk
 from .wrap import COORD_LIMIT, wrap_1d
 
-#: The level's short side (area / longest side) is at most this many texels.
-MAX_BANDS = 16
+#: The level's short side (area / longest side) is at most this many texels: a footprint more
+#: than this many texels across gives up a level 0 texel of detail in this many for half the
+#: walk and chords (README, *Pixel footprints*, has what it costs next to a far edge).
+MAX_BANDS = 6
 #: The level's Manhattan perimeter 2·(|e0x| + |e0y| + |e1x| + |e1y|) is at most this many texels.
 MAX_PERIMETER = 256
 #: Footprints under this area (level-0 texels²) are points: bilinear at level 0.
