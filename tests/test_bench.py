@@ -1,6 +1,7 @@
 """Benchmarks as smoke tests: they run end to end and produce their outputs (not timed tests)."""
 
 import csv
+import re
 
 import numpy as np
 import pytest
@@ -65,6 +66,15 @@ def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path):
     assert {r['scene'] for r in rows} == {'grazing-checker-image-gaussian', 'envlit-photo'}
     assert all(np.isfinite(r['rmse']) for r in rows)
     assert any('at the errors of Mitsuba bitmap + path at 4 / 16 spp' in s for s in summary)
+    # the drop-in timed render against render: the same image (the same texels through the same
+    # bilinear formula; what differs is float32 rounding, measured 8e-7 on values of ~1), so its
+    # time ratio is its equal-error speed-up — a different texture would differ by > 1e-2
+    paired = [s for s in summary if 'one render of each in turn' in s]
+    assert len(paired) == 1 and 'at 4 / 16 spp' in paired[0]
+    diff = float(re.search(r'differ by at most ([0-9.e+-]+),', paired[0]).group(1))
+    assert diff < 1e-4
+    ratios = re.search(r'\*\*(.*)\*\*', paired[0]).group(1)
+    assert all(float(r) > 0 for r in re.findall(r'([0-9.]+)×', ratios))
     assert (tmp_path / 'cache' / 'envlit-photo.png').exists()
     with pytest.raises(SystemExit, match='matpreview.xml does not exist'):
         render.cases(str(tmp_path), str(tmp_path / 'cache'))

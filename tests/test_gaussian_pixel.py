@@ -32,11 +32,12 @@ def filter_1d(x, stddev=0.5, radius=2.0):
 
 
 # ----------------------------------------------------------------------------- film positions
-@pytest.mark.parametrize('n', [1, 5, 16])
+@pytest.mark.parametrize('n', [1, 2, 5, 16, 64])
 def test_film_positions_decode_to_their_pixel(n, rng):
     """Every film position of sample s of pixel c decodes to c, also moved by up to 0.2 of the
     decoding margin (half a cell of the a × b grid in ψ: 1/(2a) of ψ, at least 1/(2a·max G/∫G)
-    pixel), in any direction."""
+    pixel), in any direction (grids of 1 × 1, 2 × 1, 3 × 2 with a cell unused, 4 × 4, 8 × 8);
+    non-finite positions decode to nothing."""
     pixels = FilterPixels(gaussian_film(), seed=7)
     pixels.draw(n)
     count = 20000
@@ -49,6 +50,8 @@ def test_film_positions_decode_to_their_pixel(n, rng):
         pix, ok = pixels.decode(mi.Point2f(xs[:, 0], xs[:, 1]))
         assert A(ok).all()
         np.testing.assert_array_equal(A(pix), c)
+    _, ok = pixels.decode(mi.Point2f([np.nan, 3.25, np.inf], [2.5, -np.inf, 1.5]))
+    assert not A(ok).any()
 
 
 def test_film_offsets_follow_the_filter():

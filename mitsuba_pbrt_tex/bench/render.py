@@ -45,6 +45,11 @@ from ..outputs import save_figure
 LUM = np.array([0.212671, 0.715160, 0.072169])
 #: the silhouette samples the README recommends with pixel footprints
 SILHOUETTE_SPP = 64
+#: our image texture in place of ``bitmap`` under Mitsuba's ``path``: the same image, so its
+#: equal-error speed-up is a time ratio, also measured render against render (:mod:`.paired`)
+DROP_IN = 'pbrt_imagemap bilinear + Mitsuba path'
+#: pairs of renders per spp in that measurement
+PAIRS = 9
 
 
 @dataclass
@@ -122,8 +127,8 @@ def _gaussian_methods(image, tiles, extra=None):
     under Mitsuba's path, sample-centred filters and pixel footprints, whose texture filters the
     film's own kernel, with and without silhouette samples."""
     common, builtin = _image_common(image, tiles, extra)
-    ours = [Method('pbrt_imagemap bilinear + Mitsuba path',
-                   {**common, 'filter': 'bilinear', 'integrator': 'path'}, True),
+    ours = [Method(DROP_IN, {**common, 'filter': 'bilinear', 'integrator': 'path'}, True,
+                   'drop-in'),
             Method('pbrt_imagemap bilinear', {**common, 'filter': 'bilinear'}, True),
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear'}, True),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True),
@@ -501,7 +506,8 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
                     f'RMSE {e[0]:.5f} (textured {e[1]:.5f})  '
                     f'elapsed {time.perf_counter() - t_start:6.0f} s')
         summary += (summarize(case, rows) + far_edge_lines(case, rows)
-                    + at_builtin_errors(case, rows))
+                    + at_builtin_errors(case, rows)
+                    + drop_in_lines(case, res, builtin_spp, 1 if quick else PAIRS, variant, log))
     summary += compare_groups(rows)
     write_outputs(rows, summary, out_dir, base_res, ref_spp, variant, repeats)
     return rows, summary
@@ -590,6 +596,29 @@ def at_builtin_errors(case: Case, rows) -> list[str]:
         lines.insert(0, f'- **{case.name}** (lighting noise dominates): equal-error speed-ups '
                         f'where the built-in\'s samples are spent')
     return lines
+
+
+def drop_in_lines(case: Case, res, builtin_spp, pairs, variant, log) -> list[str]:
+    """For a case with a drop-in method (the same image as the built-in): the built-in's time
+    over the drop-in's, render against render in two processes (:mod:`.paired`), at the spp of
+    ``case.at_builtin_spp`` the built-in was run at."""
+    drop_in = [m for m in case.methods if m.group == 'drop-in']
+    builtin = [m for m in case.methods if not m.ours]
+    spp_list = [n for n in case.at_builtin_spp if n in builtin_spp]
+    if not drop_in or not builtin or not spp_list:
+        return []
+    from .paired import paired_ratios
+    log(f'  {drop_in[0].name} against {builtin[0].name}: {pairs} pairs of renders per spp')
+    ratios = paired_ratios(_load, (case, builtin[0].params, res), (case, drop_in[0].params, res),
+                           spp_list, pairs, variant)
+    diff = max(r.max_image_diff for r in ratios)
+    return [f'  - *{drop_in[0].name}* against {builtin[0].name}, one render of each in turn '
+            f'({pairs} pair{"s" if pairs != 1 else ""} per spp, each configuration in a process '
+            f'of its own; the images '
+            f'differ by at most {diff:.1e}, so this is the equal-error speed-up): at '
+            f'{" / ".join(str(r.spp) for r in ratios)} spp **'
+            f'{" / ".join(r.text() for r in ratios)}** (median of the pairs\' time ratios, '
+            f'quartiles in brackets)']
 
 
 def _speedup(curve, row, max_spp) -> str:
