@@ -21,6 +21,9 @@ def test_render_benchmark_quick(tmp_path):
     assert any(r['method'].startswith('Mitsuba') for r in table)
     assert any('by distance from the far edge' in s for s in summary)
     assert any('pbrt_checkerboard area, footprint pixel' in s for s in summary)
+    # the pixel-footprint frame against pbrt_path + bilinear's, render against render
+    frame = [s for s in summary if "frame over `pbrt_path` + bilinear's" in s]
+    assert len(frame) == 1 and float(re.search(r'\*\*([0-9.]+)×', frame[0]).group(1)) > 0
     # the reference is cached: a second run does not render it again
     lines.clear()
     render.run(['grazing-checker'], quick=True, out_dir=str(tmp_path), log=lines.append)
@@ -69,8 +72,10 @@ def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path):
     # the drop-in timed render against render: the same image (the same texels through the same
     # bilinear formula; what differs is float32 rounding, measured 8e-7 on values of ~1), so its
     # time ratio is its equal-error speed-up — a different texture would differ by > 1e-2
-    paired = [s for s in summary if 'one render of each in turn' in s]
+    paired = [s for s in summary if 'one render of each in turn' in s and 'spp **' in s]
     assert len(paired) == 1 and 'at 4 / 16 spp' in paired[0]
+    # the Gaussian film's pixel-footprint frame against bilinear's and the box film's
+    assert len([s for s in summary if 'frame over' in s]) == 2
     diff = float(re.search(r'differ by at most ([0-9.e+-]+),', paired[0]).group(1))
     assert diff < 1e-4
     ratios = re.search(r'\*\*(.*)\*\*', paired[0]).group(1)

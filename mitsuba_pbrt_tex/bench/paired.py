@@ -11,7 +11,9 @@ pair alternates.
 Each configuration lives in its own process: Dr.Jit traces a symbolic call over every registered
 instance of its domain, so a second scene loaded in the same process would be traced into
 the first one's kernels and change what is timed. The processes take turns (never render at the
-same time) and are started with ``spawn`` (Dr.Jit's thread pool does not survive ``fork``).
+same time) and are started with ``spawn`` (Dr.Jit's thread pool does not survive ``fork``), so a
+script that calls ``bench render``'s ``run`` needs Python's ``if __name__ == '__main__':`` guard
+(the command line and pytest have it).
 """
 
 from __future__ import annotations
@@ -90,7 +92,7 @@ def _quartiles(values):
 
 def paired_ratios(load, args_a, args_b, spp_list, pairs: int, variant: str) -> list:
     """Time ratios ``t_a / t_b`` of configurations ``load(*args_a)`` and ``load(*args_b)`` (each
-    a scene; ``load`` picklable) at each spp: one warm-up render each (compilation), then
+    a scene; ``load`` picklable) at each spp: two warm-up renders each (compilation), then
     ``pairs`` pairs in alternating order, every pair at its own seed for both."""
     ctx = multiprocessing.get_context('spawn')
     a = _Renderer(ctx, variant, load, args_a)
@@ -98,8 +100,11 @@ def paired_ratios(load, args_a, args_b, spp_list, pairs: int, variant: str) -> l
     out = []
     try:
         for spp in spp_list:
-            _, img_a = a.render(spp, 1)
-            _, img_b = b.render(spp, 1)
+            # warm-up: the first render compiles, and the second can too (state a render keeps
+            # for the next, e.g. pbrt_path's camera approximation, changes what is traced)
+            for seed in (1, 2):
+                _, img_a = a.render(spp, seed)
+                _, img_b = b.render(spp, seed)
             diff = float(np.max(np.abs(img_a - img_b)))
             ratios = []
             for k in range(pairs):

@@ -50,6 +50,8 @@ SILHOUETTE_SPP = 64
 DROP_IN = 'pbrt_imagemap bilinear + Mitsuba path'
 #: pairs of renders per spp in that measurement
 PAIRS = 9
+#: the pixel-footprint method whose frame is compared with others' (no silhouette samples)
+PIXEL_BOX = 'pbrt_imagemap box, footprint pixel'
 
 
 @dataclass
@@ -114,7 +116,7 @@ def _image_methods(image, tiles, pixel=False, extra=None):
             Method('pbrt_imagemap ewa 32', {**common, 'filter': 'ewa', 'maxanisotropy': '32'}, True, 'ewa-anisotropy'),
             Method('pbrt_imagemap box', {**common, 'filter': 'box'}, True, 'footprint')]
     if pixel:           # scenes whose pbrt_path takes "footprint" (int/pbrt_path.xml)
-        ours.append(Method('pbrt_imagemap box, footprint pixel',
+        ours.append(Method(PIXEL_BOX,
                            {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'))
         ours.append(Method(f'pbrt_imagemap box, footprint pixel, silhouette_spp {SILHOUETTE_SPP}',
                            {**common, 'filter': 'box', 'footprint': 'pixel',
@@ -132,7 +134,7 @@ def _gaussian_methods(image, tiles, extra=None):
             Method('pbrt_imagemap bilinear', {**common, 'filter': 'bilinear'}, True),
             Method('pbrt_imagemap trilinear v3', {**common, 'filter': 'trilinear'}, True),
             Method('pbrt_imagemap ewa 8', {**common, 'filter': 'ewa', 'maxanisotropy': '8'}, True),
-            Method('pbrt_imagemap box, footprint pixel',
+            Method(PIXEL_BOX,
                    {**common, 'filter': 'box', 'footprint': 'pixel'}, True, 'footprint'),
             Method(f'pbrt_imagemap box, footprint pixel, silhouette_spp {SILHOUETTE_SPP}',
                    {**common, 'filter': 'box', 'footprint': 'pixel',
@@ -505,9 +507,11 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
                 log(f'  [{done}/{total}] {m.name:42s} spp {spp:4d}  {t * 1e3:8.1f} ms  '
                     f'RMSE {e[0]:.5f} (textured {e[1]:.5f})  '
                     f'elapsed {time.perf_counter() - t_start:6.0f} s')
+        pairs = 1 if quick else PAIRS
         summary += (summarize(case, rows) + far_edge_lines(case, rows)
+                    + frame_ratio_lines(case, res, pairs, variant, log)
                     + at_builtin_errors(case, rows)
-                    + drop_in_lines(case, res, builtin_spp, 1 if quick else PAIRS, variant, log))
+                    + drop_in_lines(case, res, builtin_spp, pairs, variant, log))
     summary += compare_groups(rows)
     write_outputs(rows, summary, out_dir, base_res, ref_spp, variant, repeats)
     return rows, summary
@@ -619,6 +623,31 @@ def drop_in_lines(case: Case, res, builtin_spp, pairs, variant, log) -> list[str
             f'{" / ".join(str(r.spp) for r in ratios)} spp **'
             f'{" / ".join(r.text() for r in ratios)}** (median of the pairs\' time ratios, '
             f'quartiles in brackets)']
+
+
+def frame_ratio_lines(case: Case, res, pairs, variant, log) -> list[str]:
+    """On a far-edge case with pixel footprints: the 1-spp frame of ``PIXEL_BOX`` over
+    ``pbrt_path`` + bilinear's, and on a Gaussian film also over the same method's on a box
+    film — render against render, each configuration in a process of its own (:mod:`.paired`),
+    so that the ratio does not carry the machine's drift between the methods' own timings."""
+    by_name = {m.name: m for m in case.methods}
+    box, bilinear = by_name.get(PIXEL_BOX), by_name.get('pbrt_imagemap bilinear')
+    if not case.far_edge or box is None or bilinear is None:
+        return []
+    from .paired import paired_ratios
+    others = [('`pbrt_path` + bilinear', bilinear.params)]
+    if box.params.get('rfilter', 'box') != 'box':
+        others.append(('the same on a box film', {**box.params, 'rfilter': 'box'}))
+    lines = [f'- **{case.name}**, frame cost:']
+    for label, params in others:
+        log(f'  {PIXEL_BOX} against {label}: {pairs} pairs of 1-spp renders')
+        r, = paired_ratios(_load, (case, box.params, res), (case, params, res), [1], pairs,
+                           variant)
+        lines.append(f'  - *{PIXEL_BOX}*: its 1-spp frame over {label}\'s, one render of each '
+                     f'in turn ({pairs} pair{"s" if pairs != 1 else ""}, each configuration in a '
+                     f'process of its own): **{r.text()}** (median of the pairs\' ratios, '
+                     f'quartiles in brackets)')
+    return lines
 
 
 def _speedup(curve, row, max_spp) -> str:
