@@ -82,7 +82,7 @@ from .wrap import COORD_LIMIT, wrap_1d
 #: The level's short side (area / longest side) is at most this many texels. A footprint wider
 #: than this is walked on a coarser level, in about half the walk's and chords' iterations per
 #: level, and loses the detail of the levels it skips (README, *Speed against error*: what 6
-#: costs next to a far edge; 16 was ~20% slower there).
+#: costs and saves next to a far edge).
 MAX_BANDS = 6
 #: The level's Manhattan perimeter 2·(|e0x| + |e0y| + |e1x| + |e1y|) is at most this many texels.
 MAX_PERIMETER = 256

@@ -19,7 +19,6 @@ script that calls ``bench render``'s ``run`` needs Python's ``if __name__ == '__
 from __future__ import annotations
 
 import multiprocessing
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,13 +26,12 @@ import numpy as np
 
 @dataclass
 class PairedRatio:
-    """Per-pair time ratios (``a`` over ``b``) at one spp: their median and quartiles, the
-    number of pairs, and the largest difference between the two images at the same seed."""
+    """Per-pair time ratios (``a`` over ``b``) at one spp: their median and quartiles, and the
+    largest difference between the two images at the same seed."""
     spp: int
     median: float
     q1: float
     q3: float
-    pairs: int
     max_image_diff: float
 
     def text(self) -> str:
@@ -43,21 +41,19 @@ class PairedRatio:
 def _worker(conn, variant, load, load_args):
     """One configuration: load it, then render on request, ``(spp, seed)`` → (seconds, image)."""
     import mitsuba_pbrt_tex                  # finds libLLVM before Dr.Jit starts
-    import drjit as dr
     import mitsuba as mi
     mi.set_variant(variant)
     mitsuba_pbrt_tex.register()
     scene = load(*load_args)
     from .render import _render
+    from .timing import timed
     while True:
         msg = conn.recv()
         if msg is None:
             break
         spp, seed = msg
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        image = _render(scene, spp, seed)        # a numpy image: every kernel has run
-        conn.send((time.perf_counter() - t0, image))
+        image, seconds = timed(lambda: _render(scene, spp, seed))
+        conn.send((seconds, image))
     conn.close()
 
 
@@ -83,11 +79,6 @@ class _Renderer:
         self.proc.join(timeout=60)
         if self.proc.is_alive():
             self.proc.kill()
-
-
-def _quartiles(values):
-    q = np.percentile(values, [25, 50, 75])
-    return float(q[1]), float(q[0]), float(q[2])
 
 
 def paired_ratios(load, args_a, args_b, spp_list, pairs: int, variant: str) -> list:
@@ -116,8 +107,8 @@ def paired_ratios(load, args_a, args_b, spp_list, pairs: int, variant: str) -> l
                     t_a, _ = a.render(spp, seed)
                     t_b, _ = b.render(spp, seed)
                 ratios.append(t_a / t_b)
-            med, q1, q3 = _quartiles(ratios) if len(ratios) > 1 else (ratios[0],) * 3
-            out.append(PairedRatio(spp, med, q1, q3, len(ratios), diff))
+            q1, med, q3 = (float(q) for q in np.percentile(ratios, [25, 50, 75]))
+            out.append(PairedRatio(spp, med, q1, q3, diff))
     finally:
         a.close()
         b.close()

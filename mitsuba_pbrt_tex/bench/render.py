@@ -602,6 +602,12 @@ def at_builtin_errors(case: Case, rows) -> list[str]:
     return lines
 
 
+def _in_turn(pairs) -> str:
+    """How a paired timing was taken (opens a bracket the caller closes)."""
+    return (f'one render of each in turn ({pairs} pair{"s" if pairs != 1 else ""}, each '
+            f'configuration in a process of its own')
+
+
 def drop_in_lines(case: Case, res, builtin_spp, pairs, variant, log) -> list[str]:
     """For a case with a drop-in method (the same image as the built-in): the built-in's time
     over the drop-in's, render against render in two processes (:mod:`.paired`), at the spp of
@@ -616,10 +622,8 @@ def drop_in_lines(case: Case, res, builtin_spp, pairs, variant, log) -> list[str
     ratios = paired_ratios(_load, (case, builtin[0].params, res), (case, drop_in[0].params, res),
                            spp_list, pairs, variant)
     diff = max(r.max_image_diff for r in ratios)
-    return [f'  - *{drop_in[0].name}* against {builtin[0].name}, one render of each in turn '
-            f'({pairs} pair{"s" if pairs != 1 else ""} per spp, each configuration in a process '
-            f'of its own; the images '
-            f'differ by at most {diff:.1e}, so this is the equal-error speed-up): at '
+    return [f'  - *{drop_in[0].name}* against {builtin[0].name}, {_in_turn(pairs)} at each spp; '
+            f'the images differ by at most {diff:.1e}, so this is the equal-error speed-up): at '
             f'{" / ".join(str(r.spp) for r in ratios)} spp **'
             f'{" / ".join(r.text() for r in ratios)}** (median of the pairs\' time ratios, '
             f'quartiles in brackets)']
@@ -643,10 +647,8 @@ def frame_ratio_lines(case: Case, res, pairs, variant, log) -> list[str]:
         log(f'  {PIXEL_BOX} against {label}: {pairs} pairs of 1-spp renders')
         r, = paired_ratios(_load, (case, box.params, res), (case, params, res), [1], pairs,
                            variant)
-        lines.append(f'  - *{PIXEL_BOX}*: its 1-spp frame over {label}\'s, one render of each '
-                     f'in turn ({pairs} pair{"s" if pairs != 1 else ""}, each configuration in a '
-                     f'process of its own): **{r.text()}** (median of the pairs\' ratios, '
-                     f'quartiles in brackets)')
+        lines.append(f'  - *{PIXEL_BOX}*: its 1-spp frame over {label}\'s, {_in_turn(pairs)}): '
+                     f'**{r.text()}** (median of the pairs\' ratios, quartiles in brackets)')
     return lines
 
 
