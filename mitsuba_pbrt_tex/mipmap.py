@@ -277,6 +277,8 @@ class MIPMap:
     def fetch(self, level, x, y, active):
         """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here)."""
         view = level if isinstance(level, LevelView) else self.view(level)
+        if self.wrap == 'repeat' and view.pow2:        # the modulo as a bit mask (exact)
+            return view.gather(mi.Int32(y) & view.mask[1], mi.Int32(x) & view.mask[0], active)
         w, h = view.size
         ix, iy, valid = wrap_2d(x, y, w, h, self.wrap, *view.inv_size)
         return view.gather(iy, ix, active & valid)
