@@ -76,6 +76,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .mipmap import ad_alias
 from .outline import Outline, Parallelogram, Piece, walk
 from .wrap import COORD_LIMIT, wrap_1d
 
@@ -94,12 +95,10 @@ _GL = 0.5 / math.sqrt(3.0)              # two-point Gauss–Legendre nodes on [0
 
 class BoxTables:
     """What the box filter reads besides the pyramid, for one wrap mode: no table — the two
-    walks read the pyramid's texels through ``walk`` and ``chords``, each the pyramid's buffer
-    (the same memory) or, when it carries gradients, an AD variable of its own with an edge from
-    it. Dr.Jit's forward mode through a loop follows every edge out of the variables the loop
-    reads; a buffer also read elsewhere (the other loop, the closed forms, other filters on the
-    pyramid) would take it onto edges outside the loop's scope, an error. A Dr.Jit struct
-    (``walk`` and ``chords`` are traversed); made by :func:`build_box_tables`."""
+    walks read the pyramid's texels through ``walk`` and ``chords``, each an
+    :func:`~mitsuba_pbrt_tex.mipmap.ad_alias` of the pyramid's buffer (the same memory; with
+    gradients, an AD variable of each loop's own). A Dr.Jit struct (``walk`` and ``chords`` are
+    traversed); made by :func:`build_box_tables`."""
 
     DRJIT_STRUCT = {'walk': object, 'chords': object}
 
@@ -115,20 +114,13 @@ class BoxTables:
         return 0                        # aliases of the pyramid's buffer
 
 
-def _alias(buffer):
-    """``buffer`` itself, or with gradients a new AD node for the same JIT variable."""
-    if not dr.grad_enabled(buffer):
-        return buffer
-    return dr.replace_grad(dr.detach(buffer), buffer * 1.0)
-
-
 def build_box_tables(pyramid, wrap: str) -> BoxTables:
     """The box filter's record for ``pyramid`` (which must hold every level) and ``wrap``: a
     pure function of the pyramid (gradients on its buffer reach the aliases). Call it where the
     pyramid is built (not inside a symbolic loop or call: an AD alias cannot be made there)."""
     if wrap not in BOX_WRAPS:
         raise ValueError(f'box filter: unsupported wrap mode "{wrap}"')
-    return BoxTables(_alias(pyramid.buffer), _alias(pyramid.buffer), wrap, pyramid.channels,
+    return BoxTables(ad_alias(pyramid.buffer), ad_alias(pyramid.buffer), wrap, pyramid.channels,
                      pyramid)
 
 

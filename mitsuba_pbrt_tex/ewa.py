@@ -49,6 +49,7 @@ import mitsuba as mi
 import numpy as np
 
 from .lookup_order import MIN_LEVEL_BYTES, in_tile_order
+from .mipmap import ad_alias
 from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
 
 LUT_SIZE = 128
@@ -68,6 +69,25 @@ def _finite(x):
     return dr.select(dr.isfinite(x), x, 0.0)
 
 
+class EWABuffers:
+    """What EWA's two level sums read: each an :func:`~mitsuba_pbrt_tex.mipmap.ad_alias` of the
+    pyramid's buffer (the same memory; with gradients, an AD variable of each loop's own, so
+    that forward mode through one loop does not follow the other's edges). A Dr.Jit struct;
+    made by :func:`build_ewa_buffers` where the pyramid is built."""
+
+    DRJIT_STRUCT = {'lower': object, 'upper': object}
+
+    def __init__(self, lower=None, upper=None):
+        self.lower = lower
+        self.upper = upper
+
+
+def build_ewa_buffers(pyramid) -> EWABuffers:
+    """The aliases EWA's level sums read, for ``pyramid`` (not inside a symbolic loop or
+    call)."""
+    return EWABuffers(ad_alias(pyramid.buffer), ad_alias(pyramid.buffer))
+
+
 class EWAFilter:
     """pbrt's EWA over a :class:`~mitsuba_pbrt_tex.mipmap.MIPMap`."""
 
@@ -75,9 +95,10 @@ class EWAFilter:
         self.max_anisotropy = float(max_anisotropy)
         self.reorder = reorder
 
-    def __call__(self, mip, st, dst0, dst1, active):
+    def __call__(self, mip, st, dst0, dst1, active, buffers: EWABuffers | None = None):
         """``dst0 = (ds/dx, dt/dx)``, ``dst1 = (ds/dy, dt/dy)`` (Vector2f); ``mip`` must hold
-        every level."""
+        every level. ``buffers``: what the level sums read (:func:`build_ewa_buffers`; without,
+        the pyramid's buffer itself — enough where no forward-mode derivative passes)."""
         if not mip.has_pyramid:
             raise ValueError('EWA needs every level of the MIP pyramid')
         # Filter large batches in texture-tile order (:mod:`~mitsuba_pbrt_tex.lookup_order`)
@@ -85,13 +106,13 @@ class EWAFilter:
         level0_bytes = mip.level_nbytes(0)
         cached_from = math.floor(math.log(level0_bytes / MIN_LEVEL_BYTES, 4)) + 1
         if not self.reorder or cached_from <= 0:
-            return self.filter(mip, st, dst0, dst1, active)
+            return self.filter(mip, st, dst0, dst1, active, buffers)
         active = mi.Bool(active)
 
         def uncached():
             return active & (mip.level_of(self.axes(dst0, dst1)[3]) < cached_from)
 
-        return in_tile_order(lambda *a: self.filter(mip, *a), st, dst0, dst1, active,
+        return in_tile_order(lambda *a: self.filter(mip, *a, buffers), st, dst0, dst1, active,
                              width=mip.width, height=mip.height, worth=uncached)
 
     def axes(self, dst0, dst1):
@@ -106,7 +127,7 @@ class EWAFilter:
         scale = dr.select(clamp, major / (minor * self.max_anisotropy), 1.0)
         return dst0, dst1 * scale, major, minor * scale
 
-    def filter(self, mip, st, dst0, dst1, active):
+    def filter(self, mip, st, dst0, dst1, active, buffers: EWABuffers | None = None):
         """The filter itself, lanes in the order given."""
         dst0, dst1, _, minor = self.axes(dst0, dst1)
 
@@ -117,20 +138,22 @@ class EWAFilter:
         ilod = dr.floor(lod)
         frac = lod - ilod
         run = active & ~degenerate
-        v0 = self.level(mip, ilod, st, dst0, dst1, run & (frac < 1))
-        v1 = self.level(mip, ilod + 1, st, dst0, dst1, run & (frac > 0))
+        lower, upper = (None, None) if buffers is None else (buffers.lower, buffers.upper)
+        v0 = self.level(mip, ilod, st, dst0, dst1, run & (frac < 1), lower)
+        v1 = self.level(mip, ilod + 1, st, dst0, dst1, run & (frac > 0), upper)
         ewa = dr.select(frac <= 0, v0, dr.select(frac >= 1, v1, dr.lerp(v0, v1, frac)))
         fallback = mip.bilinear(0, st, active & degenerate)
         return dr.select(degenerate, fallback, ewa)
 
-    def level(self, mip, flevel, st, dst0, dst1, active):
-        """The EWA sum at one level (per lane, a whole Float); levels beyond the last give the
-        coarsest texel."""
+    def level(self, mip, flevel, st, dst0, dst1, active, buffer=None):
+        """The EWA sum at one level (per lane, a whole Float), reading ``buffer`` (an alias of
+        the pyramid's, or None: the pyramid's); levels beyond the last give the coarsest
+        texel."""
         last = len(mip.sizes) - 1
         beyond = flevel > last
         view = mip.view(mi.UInt32(dr.minimum(flevel, last)))
         e = self._ellipse(mip, view, st, dst0, dst1)
-        acc, acc_w = _ellipse_sum(mip, view, e, active & ~beyond)
+        acc, acc_w = _ellipse_sum(mip, view, e, active & ~beyond, buffer)
         T = mip.value_type()
         result = dr.select(acc_w > 0, acc / dr.select(acc_w > 0, acc_w, 1) * (1 / _ACC_SCALE),
                            dr.zeros(T))
@@ -186,9 +209,10 @@ class _Ellipse:
     t1: object
 
 
-def _ellipse_sum(mip, view, e: _Ellipse, run):
+def _ellipse_sum(mip, view, e: _Ellipse, run, buffer=None):
     """(Σ weight·texel, Σ weight) over the texels inside each lane's ellipse, row by row: each
-    row's column span from the roots of the quadratic, ``COLUMNS_PER_STEP`` columns a step."""
+    row's column span from the roots of the quadratic, ``COLUMNS_PER_STEP`` columns a step;
+    texels read from ``buffer`` (None: the pyramid's)."""
     w, h = view.size
     inv_2a = 0.5 * dr.rcp(e.A)
     separable = mip.wrap != 'octahedralsphere'
@@ -223,9 +247,9 @@ def _ellipse_sum(mip, view, e: _Ellipse, run):
             wgt = dr.select(inside, lut_weight(r2), 0)
             if separable:
                 ix, valid = cols[k]
-                texel = view.gather(row_y, ix, inside & row_ok & valid)
+                texel = view.gather(row_y, ix, inside & row_ok & valid, buffer)
             else:
-                texel = mip.fetch(view, col, it, inside)
+                texel = mip.fetch(view, col, it, inside, buffer)
             acc = dr.fma(texel, wgt * _ACC_SCALE, acc)
             acc_w = acc_w + wgt
         # advance: next columns, or the first column of the next row

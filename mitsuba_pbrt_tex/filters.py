@@ -42,7 +42,9 @@ class TextureFilter:
     def __call__(self, pyramid: Pyramid, tc, active, tables=None):
         """The filtered value at ``tc``: Float (1 channel) or Color3f (RGB). Gradients reach
         ``pyramid.buffer`` (and through it the texels it was built from) and ``tc.st``.
-        ``tables``: the pyramid's :class:`~mitsuba_pbrt_tex.box.BoxTables` (``box`` only)."""
+        ``tables``: what the filter's loops read — the pyramid's
+        :class:`~mitsuba_pbrt_tex.box.BoxTables` (``box``, required) or
+        :class:`~mitsuba_pbrt_tex.ewa.EWABuffers` (``ewa``, for forward-mode derivatives)."""
         mip = MIPMap(pyramid, self.wrap)
         if self.kind == 'box':
             if tables is None or tables.wrap != self.wrap:
@@ -52,7 +54,7 @@ class TextureFilter:
                        mi.Vector2f(tc.dsdy, tc.dtdy), active)
         if self.kind == 'ewa':
             return self.ewa(mip, tc.st, mi.Vector2f(tc.dsdx, tc.dtdx),
-                            mi.Vector2f(tc.dsdy, tc.dtdy), active)
+                            mi.Vector2f(tc.dsdy, tc.dtdy), active, tables)
         width = footprint_width(tc, self.width_convention)
         if self.kind == 'trilinear':
             return mip.trilinear(tc.st, width, active)

@@ -184,6 +184,18 @@ def pad_rgb(flat: mi.Float) -> mi.Float:
     return dr.gather(mi.Float, flat, (idx >> 2) * 3 + dr.minimum(ch, 2), ch < 3)
 
 
+def ad_alias(buffer):
+    """``buffer`` itself, or, where it carries gradients, a new AD variable for the same JIT
+    variable with an edge from it — what a filter's symbolic loop reads. Dr.Jit's forward mode
+    through a loop follows every edge out of the variables the loop reads; a buffer also read
+    elsewhere (another loop, a closed form, another filter on the pyramid) would take it onto
+    edges outside the loop's scope, an error. Make it where the pyramid is built: an alias
+    cannot be made inside a symbolic loop or call."""
+    if not dr.grad_enabled(buffer):
+        return buffer
+    return dr.replace_grad(dr.detach(buffer), buffer * 1.0)
+
+
 class Pyramid:
     """The levels of one image in one flat float32 buffer (see the module docstring): level 0
     first, ``stride`` floats per texel (4 for RGB, 1 for 1-channel images), level ``l`` of size
@@ -274,14 +286,16 @@ class MIPMap:
     def view(self, level) -> 'LevelView':
         return LevelView(self, level)
 
-    def fetch(self, level, x, y, active):
-        """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here)."""
+    def fetch(self, level, x, y, active, buffer=None):
+        """Texel (x, y) of ``level`` (float-valued integers, any range: wrapped here), read
+        from ``buffer`` (an :func:`ad_alias` of the pyramid's) if given."""
         view = level if isinstance(level, LevelView) else self.view(level)
         if self.wrap == 'repeat' and view.pow2:        # the modulo as a bit mask (exact)
-            return view.gather(mi.Int32(y) & view.mask[1], mi.Int32(x) & view.mask[0], active)
+            return view.gather(mi.Int32(y) & view.mask[1], mi.Int32(x) & view.mask[0], active,
+                               buffer)
         w, h = view.size
         ix, iy, valid = wrap_2d(x, y, w, h, self.wrap, *view.inv_size)
-        return view.gather(iy, ix, active & valid)
+        return view.gather(iy, ix, active & valid, buffer)
 
     # -------------------------------------------------------------------- filters at one level
     def point(self, level, st, active):
@@ -445,14 +459,16 @@ class LevelView:
         elif self.pow2:
             self.mask = (mi.Int32(iw - 1), mi.Int32(ih - 1))
 
-    def gather(self, iy, ix, active):
-        """Texel at wrapped integer (ix, iy)."""
+    def gather(self, iy, ix, active, buffer=None):
+        """Texel at wrapped integer (ix, iy), from ``buffer`` (an :func:`ad_alias` of the
+        pyramid's) if given."""
         pyr = self.mip.pyr
+        buffer = pyr.buffer if buffer is None else buffer
         ix = mi.UInt32(ix) if self.static else mi.UInt32(ix) + self.off
         index = dr.fma(mi.UInt32(iy), self.iw, ix)
         if pyr.stride == 4:
-            return _rgb(dr.gather(mi.Array4f, pyr.buffer, index, active))
-        return dr.gather(mi.Float, pyr.buffer, index, active)
+            return _rgb(dr.gather(mi.Array4f, buffer, index, active))
+        return dr.gather(mi.Float, buffer, index, active)
 
 
 def _rgb(v4):

@@ -97,6 +97,7 @@ import mitsuba as mi
 
 from mitsuba_pbrt_tex import gauss, pixel
 from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
+from mitsuba_pbrt_tex.ewa import build_ewa_buffers
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
 from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, PyramidSlot, decode_bitmap,
@@ -207,7 +208,7 @@ class Plugin(PbrtTexture):
             img = self._call(lambda: decode_bitmap(bmp, encoding, 'the bitmap'), 'bitmap')
             self.data, self.source = mi.TensorXf(img.texels), 'bitmap object'
             self._warn_nonfinite(img.nonfinite)
-        self._box_tables = None
+        self._tables = None
         self._rebuild(levels=self.filter_name in ('trilinear', 'ewa', 'box'))
 
     def _call(self, fn, param):
@@ -259,8 +260,8 @@ class Plugin(PbrtTexture):
         level, or level 0 alone) — the file's shared one while the texels are still the file's,
         else built from the tensor, inside the AD graph even during a render's primal pass
         (which suspends gradients), so gradients enabled on the tensor reach every level; large
-        builds give their temporaries back — and, for ``box``, its prefix tables (pure, in the
-        AD graph like the pyramid)."""
+        builds give their temporaries back — and, for ``box`` and ``ewa``, the AD aliases of
+        its buffer that the filter's loops read (pure, in the AD graph like the pyramid)."""
         self._levels = levels
         if self._shared is not None:
             self._shared.pyramid(levels)            # built once per file
@@ -270,12 +271,13 @@ class Plugin(PbrtTexture):
                 pyramid = build_pyramid(self.data, levels)
             release_build_temporaries(pyramid)
             self.pyramid_slot = PyramidSlot(pyramid)
-        if self.filter_name == 'box':
+        if self.filter_name in ('box', 'ewa'):          # what the filter's loops read
             with dr.resume_grad():
-                self._box_tables = build_box_tables(self.pyramid, self.wrap)
+                self._tables = (build_box_tables(self.pyramid, self.wrap)
+                                if self.filter_name == 'box' else build_ewa_buffers(self.pyramid))
 
     def _state(self):
-        """(pyramid, box tables) for a lookup — read only. Stale state is an error naming the
+        """(pyramid, what the filter's loops read) for a lookup — read only. Stale state is an error naming the
         fix: gradients enabled on ``data`` after the pyramid was built, without
         ``params.update()``, would not reach the texels (the pyramid is a copy; Mitsuba's
         ``bitmap`` gives no gradient at all then)."""
@@ -286,7 +288,7 @@ class Plugin(PbrtTexture):
                 f'texture was built, so they cannot reach its MIP levels; call '
                 f'params.update() after dr.enable_grad(params[...]) (Mitsuba\'s optimizers '
                 f'do this in params.update(opt))')
-        return pyr, self._box_tables
+        return pyr, self._tables
 
     def _make_filter(self):
         self.filter = TextureFilter(self.filter_name, self.wrap, self.max_anisotropy,
