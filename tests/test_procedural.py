@@ -10,6 +10,7 @@ import pytest
 import reference_noise as rn
 from conftest import A, make_si, numpy_reference
 from mitsuba_pbrt_tex import noise as noise_lib
+from mitsuba_pbrt_tex import registry
 
 LUM = np.array([0.212671, 0.715160, 0.072169])
 
@@ -141,6 +142,28 @@ def test_noise_plugins_match_reference(name, aamode, rng):
     else:
         np.testing.assert_allclose(A(tex.eval_1(si)), want, atol=1e-5)
         np.testing.assert_allclose(A(tex.eval(si)), np.repeat(want[:, None], 3, 1), atol=1e-5)
+
+
+def test_marble_sine_is_exact_where_float32_allows_and_finite_beyond(rng):
+    """Dr.Jit's float32 sin leaves [-1, 1] beyond |x| ~ 1e5 (-185763 at 3.3e8, NaN at 1e20);
+    marble reduces the argument by whole periods first. Reference: math.sin of the same float32
+    argument (libm reduces exactly). Bounds: float32 rounding of the sine (1.2e-7) and of the
+    reduced argument, which grows with |x|/2^24 periods — measured 1.4e-7 up to 1e5, 3.5e-7 at
+    1e8, 4e-6 at 1e9. Beyond, values stay finite and in [-1, 1]; marble's colours then stay
+    on its spline (1.5 × [0.2, 0.6]) at scales up to 1e30."""
+    sin = registry.plugin_module('pbrt_marble')._sin
+    for mag, tol in ((1e2, 3e-7), (1e5, 3e-7), (1e8, 1e-6), (1e9, 1e-5)):
+        x = f32(rng.uniform(-mag, mag, 2000))
+        want = np.array([math.sin(float(v)) for v in x])
+        np.testing.assert_allclose(A(sin(mi.Float(x))), want, atol=tol, err_msg=str(mag))
+    wild = A(sin(mi.Float(f32([1e10, -3e15, 1e20, 3.4e38, np.inf, -np.inf, np.nan]))))
+    assert np.all(np.abs(wild) <= 1), wild
+    p = f32(rng.uniform(-3, 3, (200, 3)))
+    for scale in (1e8, 1e10, 1e20, 1e30):
+        v = A(mi.load_dict({'type': 'pbrt_marble', 'scale': scale}).eval(
+            solid_si(p, np.zeros((200, 3)), np.zeros((200, 3)))))
+        assert np.all(v >= 1.5 * 0.2 - 1e-6) and np.all(v <= 1.5 * 0.6 + 1e-6), (scale, v.min(),
+                                                                                 v.max())
 
 
 def test_noise_texture_uses_to_world(rng):
