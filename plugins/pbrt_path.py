@@ -14,7 +14,7 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
 | footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` or `gaussian` film filter) | no |
-| silhouette_spp | integer | 0 | `footprint="pixel"`: this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels); primal renders only | no |
+| silhouette_spp | integer | 0 | `footprint="pixel"` (0 to 65536): this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels); primal renders only | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (uv partials at the first hit; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
@@ -73,6 +73,9 @@ from mitsuba_pbrt_tex.scene_needs import SceneCache, SceneNeeds, TraceInputs
 
 #: depths are UInt32 in the loop and int32 in Mitsuba's C++ (-1 means unbounded)
 MAX_DEPTH = 2**31 - 1
+#: Most extra paths per silhouette pixel (each is a whole path: 64 already reaches the noise
+#: floor on the bench's far edges; the loop counts them in 32 bits).
+MAX_SILHOUETTE_SPP = 65536
 
 
 def bsdf_queries(bsdf, ctx, si, wo, active_em, sample1, sample2, active):
@@ -151,7 +154,7 @@ class Plugin:
         self.texture_differentials = p.bool('texture_differentials', True)
         self.spp_mode = self._spp_mode(p)
         self.footprint_mode = p.enum('footprint', 'sample', FOOTPRINTS)
-        self.silhouette_spp = p.int('silhouette_spp', 0, lo=0)
+        self.silhouette_spp = p.int('silhouette_spp', 0, lo=0, hi=MAX_SILHOUETTE_SPP)
         text = p.string('aovs', '') or ''
         self.aov_list = [a.strip() for a in text.split(',') if a.strip()]
         for a in self.aov_list:

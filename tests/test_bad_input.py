@@ -98,6 +98,8 @@ ERRORS = [
     ('pbrt_path', {'max_depth': 10**10}, ['"max_depth"', 'must be <= 2147483647', '10000000000']),
     ('pbrt_path', '<float name="max_depth" value="1e10"/>', ['"max_depth"', 'must be <= 2147483647']),
     ('pbrt_path', {'rr_depth': 2**40}, ['"rr_depth"', 'must be <= 2147483647']),
+    ('pbrt_path', {'silhouette_spp': 2**32}, ['"silhouette_spp"', 'must be <= 65536']),
+    ('pbrt_path', {'silhouette_spp': -1}, ['"silhouette_spp"', 'must be >= 0']),
     # file names that are not files (an empty name "did not exist" as the scene's folder)
     ('pbrt_imagemap', {'filename': ''}, ['"filename"', 'value "" is empty', 'image file']),
     ('pbrt_imagemap', {'filename': DATA}, ['"filename"', f'"{DATA}" is a directory',
