@@ -26,6 +26,10 @@ from .differentials import TextureEvalContext
 from .params import Params
 
 
+#: pbrt-v4's bump-mapping offset in u (and v) where the hit has no differentials.
+BUMP_DELTA = 0.0005
+
+
 @dataclass(frozen=True)
 class Kind:
     """How values are represented in one evaluation mode: ``nested(tex, si, active)`` evaluates
@@ -129,6 +133,26 @@ class PbrtTexture:
 
     def eval_3(self, si, active=True):
         return self._lookup(si, RGB, mi.Bool(active))
+
+    def eval_1_grad(self, si, active=True):
+        """``d eval_1 / d(u, v)`` — what Mitsuba's ``bumpmap`` reads — as pbrt-v4's ``BumpMap``
+        takes it: forward differences of ``eval_1`` at the hit moved along u (``p + du·∂p/∂u``,
+        ``uv + (du, 0)``, the differentials kept) and along v, with ``du = (|∂u/∂x| +
+        |∂u/∂y|)/2`` from the hit's differentials (``dv`` likewise) or :data:`BUMP_DELTA` where
+        that is 0 or not finite (Mitsuba's own integrators give none). Image textures override
+        it with the exact gradient of their reconstruction."""
+        active = mi.Bool(active)
+        f = self.eval_1(si, active)
+        grad = []
+        for duv, dp in (((1.0, 0.0), si.dp_du), ((0.0, 1.0), si.dp_dv)):
+            axis = 0 if duv[0] else 1
+            d = 0.5 * (dr.abs(si.duv_dx[axis]) + dr.abs(si.duv_dy[axis]))
+            d = dr.select((d > 0) & dr.isfinite(d), d, BUMP_DELTA)
+            moved = mi.SurfaceInteraction3f(si)
+            moved.p = dr.fma(dp, d, si.p)
+            moved.uv = dr.fma(mi.Vector2f(*duv), d, si.uv)
+            grad.append((self.eval_1(moved, active) - f) / d)
+        return mi.Vector2f(*grad)
 
     def _lookup(self, si, kind: Kind, active):
         """:meth:`evaluate`, or within :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups`

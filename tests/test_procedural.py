@@ -168,6 +168,74 @@ def test_marble_sine_is_exact_where_float32_allows_and_finite_beyond(rng):
                                                                                  v.max())
 
 
+@pytest.mark.parametrize('with_differentials', [False, True])
+def test_bump_gradient_is_pbrts_forward_difference(with_differentials, rng):
+    """eval_1_grad (what Mitsuba's bumpmap reads) of a procedural texture is pbrt-v4's BumpMap
+    difference: (f(p + du·dp/du) - f(p)) / du, du = (|du/dx| + |du/dy|)/2 or 0.0005 without
+    differentials (likewise v). Reference: the numpy FBm at the same float32 points. Bound: the
+    shifted points' float32 rounding (p ≤ 10: 1e-6) over du, and the noise's (1e-6) over du."""
+    n = 300
+    p = f32(rng.uniform(-10, 10, (n, 3)))
+    p[:, 2] = 0.37
+    if with_differentials:
+        dx, dy = footprints(rng, n, 1e-3, 1e-1)
+    else:
+        dx = dy = np.zeros((n, 3))
+    tex = mi.load_dict({'type': 'pbrt_fbm', 'aamode': 'none'})
+    got = A(tex.eval_1_grad(solid_si(p, dx, dy)))
+    zero = np.zeros((n, 3))
+    f = rn.fbm(p, zero, zero, 0.5, 8, False)
+    for axis in (0, 1):
+        d = 0.5 * (np.abs(f32(dx)[:, axis]) + np.abs(f32(dy)[:, axis]))
+        d = np.where(d > 0, d, 0.0005).astype(np.float32)
+        moved = p.copy()
+        moved[:, axis] = (p[:, axis].astype(np.float32) + d).astype(np.float64)
+        want = (rn.fbm(moved, zero, zero, 0.5, 8, False) - f) / d
+        np.testing.assert_allclose(got[:, axis], want, atol=4e-6 / d.min() + 1e-4)
+
+
+def test_bump_gradient_of_a_bilinear_patch_is_its_slope():
+    """pbrt_bilerp is linear in u (and in v): the forward difference is its exact slope,
+    (1-v)(v10-v00) + v(v11-v01) — up to float32 rounding of values ~0.5 over du = 0.0005."""
+    uv = np.array([[0.1, 0.2], [0.5, 0.5], [0.9, 0.3], [0.25, 0.8]])
+    tex = mi.load_dict({'type': 'pbrt_bilerp', 'v00': 0.1, 'v10': 0.9, 'v01': 0.5, 'v11': 0.2})
+    got = A(tex.eval_1_grad(make_si(uv, dp_du=[1, 0, 0], dp_dv=[0, 1, 0])))
+    u, v = uv[:, 0], uv[:, 1]
+    want = np.stack([(1 - v) * (0.9 - 0.1) + v * (0.2 - 0.5),
+                     (1 - u) * (0.5 - 0.1) + u * (0.2 - 0.9)], 1)
+    np.testing.assert_allclose(got, want, atol=5e-4)
+
+
+def test_bumpmap_of_procedural_textures_renders():
+    """Mitsuba's bumpmap over pbrt's procedurals (pbrt's classic bump-mapped wrinkles): a
+    finite image that differs from the unbumped one; a constant bumps nothing. A checkerboard
+    bumps only where its filtered edges have a slope: under pbrt_path (differentials: du of a
+    pixel), not under path (du = 0.0005, the edges' steps fall between the pixels' hits)."""
+    def render(nested, integrator='path'):
+        bsdf = {'type': 'diffuse'} if nested is None else {
+            'type': 'bumpmap', 'arbitrary': nested, 'bsdf': {'type': 'diffuse'}}
+        scene = mi.load_dict({
+            'type': 'scene', 'integrator': {'type': integrator},
+            'sensor': {'type': 'perspective', 'fov': 40,
+                       'to_world': mi.ScalarTransform4f().look_at([0, -2.5, 2.5], [0, 0, 0],
+                                                                  [0, 0, 1]),
+                       'film': {'type': 'hdrfilm', 'width': 24, 'height': 24,
+                                'rfilter': {'type': 'box'}}},
+            'obj': {'type': 'rectangle', 'bsdf': bsdf},
+            'sun': {'type': 'directional', 'direction': [0.3, 0.2, -1], 'irradiance': 2.0}})
+        return np.array(mi.render(scene, spp=4, seed=1))
+    flat = render(None)
+    checker = {'type': 'pbrt_checkerboard', 'aamode': 'box', 'uscale': 4, 'vscale': 4}
+    for nested, integrator in (({'type': 'pbrt_wrinkled',
+                                 'to_world': mi.ScalarTransform4f().scale(0.2)}, 'path'),
+                               ({'type': 'pbrt_fbm'}, 'path'), ({'type': 'pbrt_marble'}, 'path'),
+                               (checker, 'pbrt_path')):
+        img = render(nested, integrator)
+        assert np.isfinite(img).all(), nested
+        assert np.abs(img - flat).max() > 1e-3, nested
+    np.testing.assert_allclose(render({'type': 'pbrt_constant', 'value': 0.5}), flat, atol=1e-6)
+
+
 def test_noise_texture_uses_to_world(rng):
     n = 100
     p = f32(rng.uniform(-3, 3, (n, 3)))
