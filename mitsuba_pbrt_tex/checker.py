@@ -173,10 +173,19 @@ def _piece_integral(p: Piece, acc):
 
 def area_mean(st, d0, d1):
     """(mean of c(s)·c(t) over ``st + a·d0 + b·d1``, a, b ∈ [-1/2, 1/2]; where it was
-    computed): False for degenerate, non-finite or too wide footprints."""
+    computed): False for degenerate, non-finite or too wide footprints that cross a cell
+    edge."""
     p = Parallelogram(mi.Point2f(_finite(st[0]), _finite(st[1])),
                       mi.Vector2f(_finite(d0[0]), _finite(d0[1])),
                       mi.Vector2f(_finite(d1[0]), _finite(d1[1])))
+    # inside one cell: that cell's value, exactly (the walk below, relative to a lattice point
+    # up to half a cell away, would round a footprint of 1e-8 cell to nothing there). "Inside"
+    # with a margin of a few float32 ulps of the coordinates: a footprint that may cross an
+    # edge within their rounding is walked, relative to that edge
+    h = p.half_extent() + (dr.abs(p.c) + p.half_extent()) * 2.0 ** -21
+    inside = ((dr.floor(p.c.x - h.x) == dr.floor(p.c.x + h.x)) &
+              (dr.floor(p.c.y - h.y) == dr.floor(p.c.y + h.y)))
+    cell = square_wave(p.c.x) * square_wave(p.c.y)
     # rows along the shorter axis (swapping x and y leaves c(x)·c(y) unchanged)
     p = p.transposed(p.taller())
     # relative to the lattice point nearest the centre: small numbers, exact, so that a
@@ -189,9 +198,9 @@ def area_mean(st, d0, d1):
     area = dr.abs(p.det())
     rows = 2 * p.half_extent().y
     ok = (area > 1e-12 * dr.maximum(rows * rows, 1e-30)) & (rows <= AREA_MAX_ROWS) & \
-        dr.isfinite(area)
+        dr.isfinite(area) & ~inside
     # counter-clockwise: ∮ S(x) c(y) dy = the integral of c(x) c(y) over the footprint
     total, = walk(p.outline(), ok, _piece_integral, (mi.Float(0),), knots=False, flush=False,
                   label='pbrt_checkerboard (area)')
     mean = dr.clip(sign * total / dr.select(ok, area, 1), -1, 1)
-    return mean, ok
+    return dr.select(inside, cell, mean), ok | inside
