@@ -59,6 +59,13 @@ FLOAT = Kind('float', lambda tex, si, active: tex.eval_1(si, active),
 RGB = Kind('rgb', _nested_rgb, lambda rgb: mi.Color3f(rgb), lambda v: mi.Color3f(v))
 
 
+def finite_gradient(g):
+    """An ``eval_1_grad`` result with non-finite components as 0: a mapping's derivatives can
+    overflow where its value does not (a spherical mapping scaled by 1e20: |p|² underflows),
+    and a bump map must not turn the shading normal into NaN."""
+    return dr.select(dr.isfinite(g), g, 0.0)
+
+
 def is_pbrt_texture(obj) -> bool:
     return getattr(type(obj), '_pbrt_impl', None) is not None
 
@@ -152,7 +159,7 @@ class PbrtTexture:
             moved.p = dr.fma(dp, d, si.p)
             moved.uv = dr.fma(mi.Vector2f(*duv), d, si.uv)
             grad.append((self.eval_1(moved, active) - f) / d)
-        return mi.Vector2f(*grad)
+        return finite_gradient(mi.Vector2f(*grad))
 
     def _lookup(self, si, kind: Kind, active):
         """:meth:`evaluate`, or within :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups`

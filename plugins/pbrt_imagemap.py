@@ -110,7 +110,7 @@ from mitsuba_pbrt_tex.params import PluginError
 from mitsuba_pbrt_tex.render_scope import in_silhouette_paths
 from mitsuba_pbrt_tex.sampling import (PositionSampler, TextureSpaceSampler, texel_weights,
                                        uv_axes)
-from mitsuba_pbrt_tex.texture import PbrtTexture
+from mitsuba_pbrt_tex.texture import PbrtTexture, finite_gradient
 from mitsuba_pbrt_tex.wrap import WRAP_MODES
 
 FORMATS = ('auto', 'variant', 'float16', 'fp16', 'uint8')
@@ -355,7 +355,7 @@ class Plugin(PbrtTexture):
         if self.invert:
             live = 1 - f * self.scale > 0
             dfdu, dfdv = dr.select(live, -dfdu, 0), dr.select(live, -dfdv, 0)
-        return mi.Vector2f(dfdu, dfdv)
+        return finite_gradient(mi.Vector2f(dfdu, dfdv))
 
     # ------------------------------------------------------------------ Mitsuba interface
     @property

@@ -1291,3 +1291,25 @@ def test_ewa_matches_pbrt_literal_on_images_a_few_texels_wide(shape, wrap, max_a
     want, ambiguous = ref.ewa(ref.pyramid(img), uv[:, 0], uv[:, 1], d0, d1, max_aniso, wrap)
     assert ambiguous.mean() < 0.25
     np.testing.assert_allclose(got[~ambiguous], want[~ambiguous, 0], atol=1e-4)
+
+
+@pytest.mark.parametrize('tex', [
+    {'type': 'pbrt_imagemap', 'data': 'random', 'mapping': 'spherical',
+     'to_world': mi.ScalarTransform4f().scale(1e20)},
+    {'type': 'pbrt_imagemap', 'data': 'random', 'mapping': 'cylindrical'},
+    {'type': 'pbrt_imagemap', 'data': 'random', 'mapping': 'planar'},
+    {'type': 'pbrt_fbm'}])
+def test_eval_1_grad_is_finite_where_the_mapping_overflows(tex, rng):
+    """A bump map must not turn a normal into NaN. A spherical mapping scaled by 1e20 (which
+    passes the invertibility check: equal singular values) has |p|² underflow, and partials
+    near float32's limit or non-finite overflow the mappings' derivatives: eval_1_grad was NaN
+    there (found in a user trial) while eval_1 was finite. Non-finite components are 0."""
+    if tex.get('data') == 'random':
+        tex = dict(tex, data=mi.TensorXf(rng.random((8, 8, 3)).astype(np.float32)))
+    t = mi.load_dict(tex)
+    p = np.array([[0, 0, 1], [0.6, 0, 0.8], [1e-4, 0, 1], [0.3, 0.4, 0.1], [2, 1, 0]])
+    n = len(p)
+    for dp in ([1, 0, 0], [3e38, 3e38, 0], [np.inf, 0, 0], [np.nan, 1, 0]):
+        si = make_si(np.full((n, 2), 0.3), p=p, n=[0, 0, 1], dp_du=dp, dp_dv=[0, 1, 0])
+        assert np.isfinite(A(t.eval_1(si))).all(), (tex['type'], dp)
+        assert np.isfinite(A(t.eval_1_grad(si))).all(), (tex['type'], dp)
