@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 
@@ -10,13 +11,25 @@ import sys
 DEBUG_ENV = 'MITSUBA_PBRT_TEX_DEBUG'
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (else argparse's one-line error, exit 2)."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f'expected a whole number, got "{text}"') from None
     if value < 1:
         raise argparse.ArgumentTypeError(f'must be >= 1, got {value}')
+    return value
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected a number, got "{text}"') from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f'must be a finite number > 0, got {text}')
     return value
 
 
@@ -103,7 +116,7 @@ def parser() -> argparse.ArgumentParser:
     r = sub.add_parser('render', help='render a scene to EXR (+ tone-mapped PNG)')
     r.add_argument('scene', help='scene XML file')
     r.add_argument('-o', '--output', required=True, help='output .exr (a .png is written beside it)')
-    r.add_argument('--spp', type=_positive_int, default=None,
+    r.add_argument('--spp', type=positive_int, default=None,
                    help='samples per pixel, >= 1 (default: the scene\'s)')
     r.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant (default llvm_ad_rgb)')
     r.add_argument('-q', '--quiet', action='store_true', help='no progress display')
@@ -125,7 +138,8 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument('rest', nargs=argparse.REMAINDER, help='options of that benchmark (--help)')
     b.set_defaults(func=_bench)
 
-    d = sub.add_parser('demo', help='demos: inverse (texture recovery with Adam)')
+    d = sub.add_parser('demo', help='demos: inverse (texture recovery with Adam), horizon '
+                                    '(filters on a plane to the horizon)')
     d.add_argument('what', choices=['inverse', 'horizon'])
     d.add_argument('rest', nargs=argparse.REMAINDER, help='options of that demo (--help)')
     d.set_defaults(func=_demo)

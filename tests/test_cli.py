@@ -69,6 +69,21 @@ def test_render_errors_are_clear(tmp_path):
     assert r.returncode == 2 and 'does not exist' in r.stderr
 
 
+@pytest.mark.parametrize('args, message', [
+    (('demo', 'inverse', '--iterations', '0'), 'argument --iterations: must be >= 1, got 0'),
+    (('demo', 'inverse', '--res', '-4', '--quick'), 'argument --res: must be >= 1, got -4'),
+    (('demo', 'inverse', '--lr', 'nan'), 'argument --lr: must be a finite number > 0, got nan'),
+    (('demo', 'horizon', '--width', '0'), 'argument --width: must be >= 1, got 0'),
+    (('demo', 'horizon', '--repeats', '0'), 'argument --repeats: must be >= 1, got 0')])
+def test_demo_options_are_checked(args, message, tmp_path):
+    """Found in a user trial: these ran into an IndexError, a raw Dr.Jit error (exit 3), a NaN
+    optimisation, or (``--repeats 0``: NaN timings) an equal-time search doubling spp for
+    ever. Now argparse's one-line error, exit 2, before anything renders."""
+    r = cli(*args, '--out', str(tmp_path / 'out'), check=False)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert not (tmp_path / 'out').exists()
+
+
 def test_info_lists_every_plugin_and_parameter():
     import mitsuba_pbrt_tex as mpt
     out = cli('info').stdout

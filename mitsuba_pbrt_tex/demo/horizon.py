@@ -18,6 +18,8 @@ import time
 
 import numpy as np
 
+from ..cli import positive_int
+
 
 def _scene_path() -> str:
     from .. import scenes
@@ -101,9 +103,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex demo horizon',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', default='renders', help='output folder (default renders)')
-    ap.add_argument('--width', type=int, default=480)
-    ap.add_argument('--height', type=int, default=270)
-    ap.add_argument('--repeats', type=int, default=3)
+    ap.add_argument('--width', type=positive_int, default=480)
+    ap.add_argument('--height', type=positive_int, default=270)
+    ap.add_argument('--repeats', type=positive_int, default=3,
+                    help='timed renders per method (the median counts)')
     args = ap.parse_args(argv)
     run(args.out, args.width, args.height, args.repeats)
     return 0

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..cli import positive_float, positive_int
 from ..outputs import save_figure
 
 VIEWS = ((0.12, 3.0), (0.35, 8.0), (0.9, 20.0))      # (camera height, look-down angle in degrees)
@@ -245,18 +246,26 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex demo inverse',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', default='demo-out')
-    ap.add_argument('--iterations', type=int, default=60)
-    ap.add_argument('--res', type=int, default=64)
-    ap.add_argument('--spp', type=int, default=4)
-    ap.add_argument('--lr', type=float, default=0.03)
+    ap.add_argument('--iterations', type=positive_int, default=None,
+                    help='optimisation steps (default 60; 3 with --quick)')
+    ap.add_argument('--res', type=positive_int, default=None,
+                    help='film and texture resolution (default 64; 16 with --quick)')
+    ap.add_argument('--spp', type=positive_int, default=None,
+                    help='samples per pixel of the optimised renders (default 4; 2 with --quick)')
+    ap.add_argument('--lr', type=positive_float, default=0.03, help='Adam\'s learning rate')
     ap.add_argument('--freeze', action='store_true',
                     help='also run every method with its render + backward frozen by dr.freeze, '
                          'and report its time per step beside the unfrozen one')
-    ap.add_argument('--quick', action='store_true', help='3 iterations at 16×16 (smoke test)')
+    ap.add_argument('--quick', action='store_true',
+                    help='3 iterations at 16×16, 2 spp (smoke test; options given win)')
     args = ap.parse_args(argv)
-    if args.quick:
-        run(args.out, iterations=3, res=16, spp=2, target_spp=16, lr=args.lr,
-            freeze=args.freeze)
-    else:
-        run(args.out, args.iterations, args.res, args.spp, lr=args.lr, freeze=args.freeze)
+    quick = {'iterations': 3, 'res': 16, 'spp': 2, 'target_spp': 16} if args.quick else {}
+
+    def pick(name, default):
+        given = getattr(args, name)
+        return given if given is not None else quick.get(name, default)
+
+    extra = {'target_spp': quick['target_spp']} if quick else {}
+    run(args.out, pick('iterations', 60), pick('res', 64), pick('spp', 4), lr=args.lr,
+        freeze=args.freeze, **extra)
     return 0
