@@ -222,6 +222,8 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     if spp is not None and int(spp) > MAX_SPP:
         raise RenderError(f'--spp must be <= {MAX_SPP} (the sampler counts samples in 32 bits), '
                           f'got {spp}')
+    if os.path.isdir(scene_path):
+        raise RenderError(f'scene "{scene_path}" is a directory; give the scene\'s XML file')
     if not os.path.isfile(scene_path):
         raise RenderError(f'scene "{scene_path}" does not exist')
     exr_path, png_path = output_paths(out_path)

@@ -88,6 +88,7 @@ during a render — so gradients reach base texels through coarse levels. ``eval
 reconstruction at the selected level(s).
 """
 
+import difflib
 import math
 import os
 import threading
@@ -178,7 +179,16 @@ class Plugin(PbrtTexture):
         return enc
 
     def _load(self, p, encoding):
-        given = [k for k in ('filename', 'bitmap', 'data') if p.has(k)]
+        sources = ('filename', 'bitmap', 'data')
+        given = [k for k in sources if p.has(k)]
+        if not given:
+            # a misspelt source is named here: the unknown-parameter check comes later
+            for k in p.props.keys():
+                near = difflib.get_close_matches(k, sources, 1, 0.7)
+                if near and k not in sources:
+                    raise PluginError(f'{self.NAME}: parameter "{k}": unknown; did you mean '
+                                      f'"{near[0]}"? (give exactly one of the parameters '
+                                      f'"filename", "bitmap", "data")')
         if len(given) != 1:
             raise PluginError(f'{self.NAME}: give exactly one of the parameters "filename", '
                               f'"bitmap", "data" (got {", ".join(given) if given else "none"})')

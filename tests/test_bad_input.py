@@ -104,6 +104,9 @@ ERRORS = [
     ('pbrt_imagemap', {'filename': ''}, ['"filename"', 'value "" is empty', 'image file']),
     ('pbrt_imagemap', {'filename': DATA}, ['"filename"', f'"{DATA}" is a directory',
                                            'image file']),
+    # a misspelt source: named by the source check, which comes before the unknown-parameter one
+    ('pbrt_imagemap', {'filenam': 'x.png'}, ['"filenam": unknown; did you mean "filename"?',
+                                             'exactly one of']),
     # Mitsuba's base class read hide_emitters first, with its own message
     ('pbrt_path', {'hide_emitters': 'yes'},
      ['"hide_emitters"', 'expected a boolean (true or false)', "'yes'"]),

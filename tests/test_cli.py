@@ -67,6 +67,8 @@ def test_render_never_overwrites_scene_or_inputs(small_scene, tmp_path, target):
 def test_render_errors_are_clear(tmp_path):
     r = cli('render', str(tmp_path / 'missing.xml'), '-o', str(tmp_path / 'x.exr'), check=False)
     assert r.returncode == 2 and 'does not exist' in r.stderr
+    r = cli('render', str(tmp_path), '-o', str(tmp_path / 'x.exr'), check=False)
+    assert r.returncode == 2 and 'is a directory; give the scene\'s XML file' in r.stderr
 
 
 @pytest.mark.parametrize('args, message', [
