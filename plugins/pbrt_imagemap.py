@@ -98,8 +98,8 @@ import mitsuba as mi
 
 from mitsuba_pbrt_tex import gauss, pixel
 from mitsuba_pbrt_tex.box import BOX_WRAPS, build_box_tables
-from mitsuba_pbrt_tex.ewa import build_ewa_buffers
 from mitsuba_pbrt_tex.differentials import TextureEvalContext
+from mitsuba_pbrt_tex.ewa import build_ewa_buffers
 from mitsuba_pbrt_tex.filters import TextureFilter
 from mitsuba_pbrt_tex.image import (ENCODING_CHOICES, TEXEL_LIMIT, PyramidSlot, decode_bitmap,
                                     load_image, parse_encoding, release_build_temporaries,
@@ -287,8 +287,8 @@ class Plugin(PbrtTexture):
                                 if self.filter_name == 'box' else build_ewa_buffers(self.pyramid))
 
     def _state(self):
-        """(pyramid, what the filter's loops read) for a lookup — read only. Stale state is an error naming the
-        fix: gradients enabled on ``data`` after the pyramid was built, without
+        """(pyramid, what the filter's loops read) for a lookup — read only. Stale state is an
+        error naming the fix: gradients enabled on ``data`` after the pyramid was built, without
         ``params.update()``, would not reach the texels (the pyramid is a copy; Mitsuba's
         ``bitmap`` gives no gradient at all then)."""
         pyr = self.pyramid
