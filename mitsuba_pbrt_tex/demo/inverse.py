@@ -198,10 +198,12 @@ def _report(cfg: Settings, history, frozen_rows, out_dir) -> list:
         if label in frozen_rows:
             fr = frozen_rows[label]
             # the first steps record the frozen function; the rest replay it
-            settled = [b['seconds'] - a['seconds'] for a, b in zip(fr[2:], fr[3:])] or [0.0]
+            settled = [b['seconds'] - a['seconds'] for a, b in zip(fr[2:], fr[3:])]
+            replayed = (f'{1e3 * sum(settled) / len(settled):.0f} ms per replayed step'
+                        if settled else 'too few steps to time a replay (4 or more)')
             line += (f'; frozen (dr.freeze): {fr[-1]["seconds"] / len(fr) * 1e3:.0f} ms per step '
-                     f'including recording, {1e3 * sum(settled) / len(settled):.0f} ms per '
-                     f'replayed step, final texture RMSE {fr[-1]["texture_rmse"]:.4f}')
+                     f'including recording, {replayed}, final texture RMSE '
+                     f'{fr[-1]["texture_rmse"]:.4f}')
         summary.append(line)
     with open(os.path.join(out_dir, 'summary.md'), 'w') as f:
         f.write('\n'.join(summary) + '\n')
