@@ -143,7 +143,7 @@ def test_inverse_demo_quick(tmp_path):
         assert all(np.isfinite(r['loss']) and np.isfinite(r['texture_rmse']) for r in rows)
         assert rows[-1]['texture_rmse'] < rows[0]['texture_rmse'] + 1e-3
     assert (tmp_path / 'inverse.csv').exists() and (tmp_path / 'summary.md').exists()
-    # 4 steps: the first records, the next replays (2 and 3 time one replay)
+    # 4 steps: the 4th step's duration is timed as a replay's
     assert all('ms per replayed step' in line for line in summary[1:]), summary
 
 
