@@ -8,14 +8,14 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
-| max_depth | integer | 6 | longest path depth (-1: unbounded; at most 2^31 - 1) | no |
+| max_depth | integer | 6 | longest path depth (-1: unbounded; at most 2^31 - 1; 0 renders as 1, as Mitsuba's `prb` does) | no |
 | rr_depth | integer | 5 | depth at which Russian roulette starts (1 to 2^31 - 1) | no |
 | hide_emitters | boolean | false | hide directly visible emitters | no |
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
 | footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` or `gaussian` film filter) | no |
 | silhouette_spp | integer | 0 | `footprint="pixel"` (0 to 65536): this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels); primal renders only | no |
-| aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (uv partials at the first hit; 2 channels each) | no |
+| aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (the uv partials the textures read at the first hit, scaled by `spp_scale` as they are; 0 where no texture reads them or `texture_differentials` is false; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
 ray differentials (one pixel) scaled by ``spp_scale``, intersected with the tangent plane; after
@@ -59,6 +59,7 @@ Samples per pixel: the footprint uses the spp of the ``mi.render`` call, or the 
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import drjit as dr
@@ -172,6 +173,18 @@ class Plugin:
         kind = str(p.props.type('spp_scale')).split('.')[-1]
         if kind in ('Float', 'Integer'):
             return p.float('spp_scale', 1.0, lo=0.0, lo_open=True)
+        if kind == 'String' and p.props['spp_scale'] not in ('pbrt', 'none'):
+            # a number given as a string (a <default> substituted into a <string>)
+            text = p.props['spp_scale']
+            try:
+                value = float(text)
+            except ValueError:
+                value = None
+            if value is None or not (math.isfinite(value) and value > 0):
+                raise p.error('spp_scale', f'unknown value "{text}"; accepted values: pbrt, '
+                                           f'none, or a number > 0')
+            p.string('spp_scale', None)                 # read: known to the parameter check
+            return value
         return p.enum('spp_scale', 'pbrt', ('pbrt', 'none'))
 
     def aov_names(self):

@@ -100,6 +100,8 @@ ERRORS = [
     ('pbrt_path', {'rr_depth': 2**40}, ['"rr_depth"', 'must be <= 2147483647']),
     ('pbrt_path', {'silhouette_spp': 2**32}, ['"silhouette_spp"', 'must be <= 65536']),
     ('pbrt_path', {'silhouette_spp': -1}, ['"silhouette_spp"', 'must be >= 0']),
+    ('pbrt_path', '<string name="spp_scale" value="-1"/>',
+     ['"spp_scale"', 'unknown value "-1"', 'pbrt, none, or a number > 0']),
     # file names that are not files (an empty name "did not exist" as the scene's folder)
     ('pbrt_imagemap', {'filename': ''}, ['"filename"', 'value "" is empty', 'image file']),
     ('pbrt_imagemap', {'filename': DATA}, ['"filename"', f'"{DATA}" is a directory',

@@ -457,6 +457,8 @@ def test_spp_scale_as_an_integer_is_a_number():
         return np.array(mi.render(scene, spp=4, seed=2))[..., 3:7]
     two = partials(2)
     np.testing.assert_array_equal(two, partials(2.0))
+    # a number in a string (a <default> substituted into a <string>) is that number too
+    np.testing.assert_array_equal(two, partials('2'))
     assert np.abs(two - partials(1.0)).max() > 1e-3
 
 
