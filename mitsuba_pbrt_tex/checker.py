@@ -182,7 +182,8 @@ def area_mean(st, d0, d1):
     # up to half a cell away, would round a footprint of 1e-8 cell to nothing there). "Inside"
     # with a margin of a few float32 ulps of the coordinates: a footprint that may cross an
     # edge within their rounding is walked, relative to that edge
-    h = p.half_extent() + (dr.abs(p.c) + p.half_extent()) * 2.0 ** -21
+    h = p.half_extent()
+    h = h + (dr.abs(p.c) + h) * 2.0 ** -21
     inside = ((dr.floor(p.c.x - h.x) == dr.floor(p.c.x + h.x)) &
               (dr.floor(p.c.y - h.y) == dr.floor(p.c.y + h.y)))
     cell = square_wave(p.c.x) * square_wave(p.c.y)

@@ -151,13 +151,13 @@ class PbrtTexture:
         active = mi.Bool(active)
         f = self.eval_1(si, active)
         grad = []
-        for duv, dp in (((1.0, 0.0), si.dp_du), ((0.0, 1.0), si.dp_dv)):
-            axis = 0 if duv[0] else 1
+        for axis, dp in enumerate((si.dp_du, si.dp_dv)):
             d = 0.5 * (dr.abs(si.duv_dx[axis]) + dr.abs(si.duv_dy[axis]))
             d = dr.select((d > 0) & dr.isfinite(d), d, BUMP_DELTA)
             moved = mi.SurfaceInteraction3f(si)
             moved.p = dr.fma(dp, d, si.p)
-            moved.uv = dr.fma(mi.Vector2f(*duv), d, si.uv)
+            moved.uv = mi.Point2f(si.uv)
+            moved.uv[axis] = si.uv[axis] + d
             grad.append((self.eval_1(moved, active) - f) / d)
         return finite_gradient(mi.Vector2f(*grad))
 

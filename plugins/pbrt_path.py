@@ -173,19 +173,19 @@ class Plugin:
         kind = str(p.props.type('spp_scale')).split('.')[-1]
         if kind in ('Float', 'Integer'):
             return p.float('spp_scale', 1.0, lo=0.0, lo_open=True)
-        if kind == 'String' and p.props['spp_scale'] not in ('pbrt', 'none'):
-            # a number given as a string (a <default> substituted into a <string>)
-            text = p.props['spp_scale']
-            try:
-                value = float(text)
-            except ValueError:
-                value = None
-            if value is None or not (math.isfinite(value) and value > 0):
-                raise p.error('spp_scale', f'unknown value "{text}"; accepted values: pbrt, '
-                                           f'none, or a number > 0')
-            p.string('spp_scale', None)                 # read: known to the parameter check
-            return value
-        return p.enum('spp_scale', 'pbrt', ('pbrt', 'none'))
+        if kind != 'String':                            # the enum's error names the type
+            return p.enum('spp_scale', 'pbrt', ('pbrt', 'none'))
+        text = p.string('spp_scale', 'pbrt')
+        if text in ('pbrt', 'none'):
+            return text
+        try:                    # a number given as a string (a <default> in a <string>)
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise p.error('spp_scale', f'unknown value "{text}"; accepted values: pbrt, none, '
+                                       f'or a number > 0')
+        return value
 
     def aov_names(self):
         return [c for a in self.aov_list for c in AOV_CHANNELS[a]]

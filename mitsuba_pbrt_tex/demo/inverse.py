@@ -261,13 +261,8 @@ def main(argv=None) -> int:
     ap.add_argument('--quick', action='store_true',
                     help='3 iterations at 16×16, 2 spp (smoke test; options given win)')
     args = ap.parse_args(argv)
-    quick = {'iterations': 3, 'res': 16, 'spp': 2, 'target_spp': 16} if args.quick else {}
-
-    def pick(name, default):
-        given = getattr(args, name)
-        return given if given is not None else quick.get(name, default)
-
-    extra = {'target_spp': quick['target_spp']} if quick else {}
-    run(args.out, pick('iterations', 60), pick('res', 64), pick('spp', 4), lr=args.lr,
-        freeze=args.freeze, **extra)
+    q = args.quick                      # options given win (they are >= 1, never falsy)
+    run(args.out, args.iterations or (3 if q else 60), args.res or (16 if q else 64),
+        args.spp or (2 if q else 4), lr=args.lr, freeze=args.freeze,
+        **({'target_spp': 16} if q else {}))
     return 0
