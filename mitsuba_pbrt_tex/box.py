@@ -91,6 +91,11 @@ MAX_PERIMETER = 256
 MIN_AREA = 1e-8
 BOX_WRAPS = ('repeat', 'mirror', 'clamp', 'black')
 _GL = 0.5 / math.sqrt(3.0)              # two-point Gauss–Legendre nodes on [0, 1]: 1/2 ∓ _GL
+#: Texels are summed scaled by 2^-12 and the normalised sum scaled back (powers of two: the
+#: same result bit for bit above ~1e-34), so that sums over a level's footprint (at most
+#: MAX_BANDS × MAX_PERIMETER / 2 texels² and the walk's partial weights) of texels near ±1e38
+#: stay finite instead of overflowing to inf.
+_ACC_SCALE = 2.0 ** -12
 
 
 class BoxTables:
@@ -333,7 +338,8 @@ def box(mip, tables: BoxTables, st, dst0, dst1, active):
     # and crossings rounded to float32): a constant texture averages to itself exactly, and a
     # thin footprint's area is not cancelled away against another rounding
     area = dr.select(f.run, area + area_c, 1.0)
-    result = dr.select(f.run, (acc + acc_c) / dr.select(area > 0, area, 1.0), 0)
+    result = dr.select(f.run, (acc + acc_c) / dr.select(area > 0, area, 1.0) * (1 / _ACC_SCALE),
+                       0)
     cell = _single_cell(mip, f.level, st, dst0, dst1, f.in_cell)
     result = dr.select(f.in_cell, cell, result)
     result = dr.select(f.degenerate, mip.bilinear(0, st, active & f.degenerate), result)
@@ -388,7 +394,7 @@ def _walk(f: _Frame, tex: _Texels, value_type):
         crossed = p.knot | p.band
         for col, row, wt in ((out.col_a, out.row_a, out.w_a), (out.col_b, out.row_b, out.w_b)):
             v = tex.read(tex.row(f.Y0 + p.j + row), f.X0 + p.i + col, crossed)
-            acc = dr.fma(v, wt, acc)
+            acc = dr.fma(v, wt * _ACC_SCALE, acc)
             area = area + dr.select(crossed, wt, 0.0)     # (black: outside texels too)
         return out.kept, acc, area
 
@@ -415,7 +421,7 @@ def _chords(f: _Frame, tex: _Texels, value_type):
         for m in range(4):
             knot = lo + k + m
             wt = omega * (_hat_cdf(xb - knot) - _hat_cdf(xa - knot))
-            acc = dr.fma(tex.read(row, f.X0 + knot, knot <= hi), wt, acc)
+            acc = dr.fma(tex.read(row, f.X0 + knot, knot <= hi), wt * _ACC_SCALE, acc)
             area = area + wt
         done = ~(lo + k + 4 <= hi)                      # (a NaN ends it too)
         return dr.select(done, y + 1, y), dr.select(done, 0.0, k + 4), acc, area
@@ -433,5 +439,6 @@ def _single_cell(mip, level, st, dst0, dst1, active):
     centre = (f00 * wx[0] + f10 * wx[1]) * wy[0] + (f01 * wx[0] + f11 * wx[1]) * wy[1]
     e0 = (_finite(dst0.x) * w, _finite(dst0.y) * h)
     e1 = (_finite(dst1.x) * w, _finite(dst1.y) * h)
-    twist = (e0[0] * e0[1] + e1[0] * e1[1]) * (1.0 / 12.0)
-    return centre + (f00 - f10 - f01 + f11) * twist
+    twist = (e0[0] * e0[1] + e1[0] * e1[1]) * (1.0 / 6.0)
+    # halved differences: f00 - f10 - f01 + f11 reaches 4e38 on texels of ±1e38
+    return centre + (0.5 * (f00 - f10) - 0.5 * (f01 - f11)) * twist

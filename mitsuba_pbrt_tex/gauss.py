@@ -88,6 +88,10 @@ _SPAN_MARGIN = 1.002
 #: Where the disc's projective image would reach the horizon, its bound is that of a weaker
 #: perspective reaching this fraction of the way (ρ²·kᵀ(NᵀN)⁻¹k).
 _MAX_REACH = 0.75
+#: Texels are summed scaled by 2^-20 and the normalised sum scaled back (powers of two: the
+#: same result bit for bit above ~1e-30), so that sums of thousands of points with the
+#: perspective's Jacobian on texels near ±1e38 stay finite instead of overflowing to inf.
+_ACC_SCALE = 2.0 ** -20
 #: Loop extent bound in lattice units (non-finite or huge footprints cannot loop forever).
 MAX_EXTENT = 4.0 * 4.0 * MAX_SIGMA + 8.0
 
@@ -163,7 +167,7 @@ def pixel_filter(mip, st, d0, d1, g, h, kernel, active):
     active = mi.Bool(active)
     lat = _lattice(mip, st, d0, d1, g, h, kernel, active)
     acc, acc_w = _lattice_sum(mip, lat, g, h, kernel)
-    result = acc / dr.select(acc_w > 0, acc_w, 1)
+    result = acc / dr.select(acc_w > 0, acc_w, 1) * (1 / _ACC_SCALE)
     summed = lat.run & (acc_w > 0)
     fallback = mip.bilinear(0, st, active & ~summed & ~lat.beyond)
     out = dr.select(summed, result, fallback)
@@ -335,7 +339,7 @@ def _lattice_sum(mip, lat: _Lattice, g, h, kernel):
             lambda i, t, use: mip.bilinear(
                 0, mi.Point2f((i + lat.ox) / lat.sx, (t + lat.oy) / lat.sy), use),
             lambda i, t, use: mip.fetch(lat.view, i, t, use), label='pbrt_gaussian_read')
-        acc = dr.fma(v, w, acc)
+        acc = dr.fma(v, w * _ACC_SCALE, acc)
         acc_w = acc_w + w
         next_row = i + 1 > i_end
         t = dr.select(next_row, t + 1, t)

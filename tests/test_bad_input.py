@@ -327,7 +327,7 @@ def test_nan_texels_through_params_update_become_zero():
         np.testing.assert_allclose(A(tex.mean()), A(ref.mean()), rtol=1e-6)
 
 
-@pytest.mark.parametrize('filt', ['bilinear', 'trilinear', 'ewa'])
+@pytest.mark.parametrize('filt', ['bilinear', 'trilinear', 'ewa', 'box'])
 @pytest.mark.parametrize('source', ['data', 'file'])
 def test_texels_near_float32_max_stay_finite(filt, source, tmp_path):
     """Texels beyond ±1e38 are clamped to ±1e38 (with a warning), so every weighted average the
@@ -360,6 +360,28 @@ def test_texels_near_float32_max_stay_finite(filt, source, tmp_path):
         p['data'] = tensor(-img)
         p.update()
         np.testing.assert_allclose(A(tex.eval_3(si)), -1e38, rtol=1e-6)
+
+
+@pytest.mark.parametrize('filt', ['trilinear', 'ewa', 'box'])
+def test_filters_of_texels_at_the_limit_are_the_scaled_filters_of_small_ones(filt):
+    """Filtering is linear: a checker of ±1e38 texels (the limit texels are clamped to) filters
+    to 1e38 × the same checker of ±1 — finite, where the box filter's single-cell twist term
+    (f00 - f10 - f01 + f11 = 4e38) and its level sums (up to ~10³ texel² of weight) overflowed
+    to NaN in a render (found in a user trial). Footprints from inside one cell to a few cells
+    across, at lanes the kernel cannot fold to constants. rtol 1e-5: the two lookups round
+    alike up to the scale (powers of two in the sums), 1e38 itself is not one."""
+    chk = (np.indices((8, 8)).sum(0) % 2 * 2 - 1).astype(np.float32)[..., None].repeat(3, 2)
+    sizes = [0.005, 0.01, 0.02, 0.05, 0.2, 0.6]
+    si = make_si([[0.3, 0.4]] * len(sizes), duv_dx=[[d, 0.3 * d] for d in sizes],
+                 duv_dy=[[0, d] for d in sizes])
+    out = []
+    for scale in (1.0, 1e38):
+        tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': filt,
+                            'data': tensor(chk * np.float32(scale))})
+        tex.prepare_differentials()
+        out.append(A(tex.eval_3(si)))
+    assert np.isfinite(out[1]).all(), out[1]
+    np.testing.assert_allclose(out[1], out[0] * 1e38, rtol=1e-5, atol=1e32)
 
 
 def test_texels_within_the_limit_are_unchanged():

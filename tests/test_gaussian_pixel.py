@@ -215,6 +215,25 @@ def test_kernel_against_numpy_integration(case, rng):
     assert err < tol, err
 
 
+def test_kernel_of_texels_at_the_limit_is_the_scaled_kernel_of_small_ones(rng):
+    """The lattice sum is linear in the texels: an image of texels up to 1e38 (the limit texels
+    are clamped to) gives 1e38 × the kernel of the same image scaled to [0, 1] — finite, where
+    sums of hundreds of points (weights up to the perspective's Jacobian) overflowed to inf.
+    rtol 1e-5: the same sums up to the scale (a power of two in the sums; 1e38 itself is not)."""
+    from mitsuba_pbrt_tex.mipmap import MIPMap, build_pyramid
+    img = (0.5 + 0.5 * rng.random((64, 64, 3))).astype(np.float32)
+    rfilter = mi.load_dict({'type': 'gaussian'})
+    st = rng.random((4, 2)).astype(np.float32)
+    for d0, d1, g, h, _ in KERNEL_CASES[1::2]:
+        out = []
+        for scale in (1.0, 1e38):
+            mip = MIPMap(build_pyramid(mi.TensorXf(img * np.float32(scale)), True), 'repeat')
+            out.append(_kernel_and_reference(mip, img, st, np.array(d0, np.float32) / 64,
+                                             np.array(d1, np.float32) / 64, g, h, rfilter)[0])
+        assert np.isfinite(out[1]).all(), (d0, d1, out[1])
+        np.testing.assert_allclose(out[1], out[0] * 1e38, rtol=1e-5)
+
+
 def test_kernel_on_a_coarsened_lattice_does_not_alias(rng):
     """A footprint near the horizon of a grazing plane (measured on the bench's: 10 × 350
     texels per pixel, perspective h = 0.12) has a larger deviation so far beyond the smaller
