@@ -87,7 +87,7 @@ class Plugin(PbrtTexture):
             return k + 1, acc + kind.nested(tex, sub, active)
 
         zero = kind.nested(tex, si, mi.Bool(False)) * 0
-        _, acc = dr.while_loop((mi.UInt32(0), zero), cond, body, max_iterations=n * n,
+        _, acc = dr.while_loop((mi.UInt32(0), zero), cond, body, max_iterations=-1,
                                label='pbrt_supersample')
         return acc / (n * n)
 

@@ -162,6 +162,18 @@ def test_other_differentiable_parameters(case, rng):
     check_gradient(scene, key, rng)
 
 
+@pytest.mark.parametrize('integrator', ['pbrt_path', 'prb'])
+@pytest.mark.parametrize('forward', [False, True])
+def test_supersampled_texels_gradient(forward, integrator, rng):
+    """Texels through pbrt_supersample's loop of nested lookups (a sum: Dr.Jit's reverse mode
+    without stored iterations). Found in a user trial: with the loop's state recorded per
+    iteration (max_iterations = samples), the backward render under pbrt_path aborted the
+    process inside Dr.Jit's LLVM compiler ('use of undefined value %arr_1')."""
+    tex = {'type': 'pbrt_supersample', 'samples': 4, 'texture': image_tex(rng, 'bilinear')}
+    check_gradient(scene_with(tex, integrator), 'plane.bsdf.reflectance.texture.data', rng,
+                   forward=forward)
+
+
 def test_squared_error_loss_gradient(rng):
     """A nonlinear (quadratic) loss. Its gradient is 2(I₇ - target)·∂I/∂θ with I₇ the primal
     image (seed 7) and ∂I/∂θ from the gradient pass (seed 8): the reference is that product with
