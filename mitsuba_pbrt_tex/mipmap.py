@@ -368,8 +368,12 @@ class MIPMap:
         """``fn(mask)`` where ``mask`` holds and 0 elsewhere, as a symbolic conditional: a
         packet of lanes none of which needs it skips it (a branch), where a masked computation
         would run it anyway — e.g. the second level of a trilinear lookup under magnification
-        (30% faster). Also used while the texels carry gradients: forward and backward mode
-        through it inside ``pbrt_path``'s loop are tested against finite differences."""
+        (30% faster). While the texels carry gradients it is the masked computation: Dr.Jit's
+        forward mode through a BSDF call that reads the texture twice (a ``roughconductor``'s
+        ``alpha``: its eval and its pdf) failed on the conditional (the buffer's edges into
+        the other read lie outside the conditional's scope)."""
+        if dr.grad_enabled(self.pyr.buffer):
+            return dr.select(mask, fn(mask), 0)
         return dr.if_stmt(args=(mask,), cond=mask, true_fn=fn,
                           false_fn=lambda m: dr.zeros(self.value_type()), label='pbrt_level')
 

@@ -130,6 +130,12 @@ ALPHAS = {       # fresh tensors for each scene: Mitsuba assigns parameter updat
     'imagemap': (lambda: {'type': 'pbrt_imagemap', 'filter': 'bilinear',
                           'data': mi.TensorXf(np.full((8, 8, 1), 0.2, np.float32))},
                  'plane.bsdf.alpha.data'),
+    # read twice in one BSDF call (roughconductor's eval and pdf) through trilinear's two
+    # levels: forward mode failed inside Dr.Jit while the second level was a symbolic
+    # conditional (found in a user trial); with gradients on the texels it is a masked lookup
+    'imagemap_trilinear': (lambda: {'type': 'pbrt_imagemap', 'filter': 'trilinear',
+                                    'data': mi.TensorXf(np.full((8, 8, 1), 0.2, np.float32))},
+                           'plane.bsdf.alpha.data'),
 }
 
 
