@@ -198,7 +198,10 @@ class Plugin(PbrtTexture):
             if encoding is not None and encoding.kind != 'linear':
                 raise p.error('encoding', 'applies to 8/16-bit image files only; "data" tensors '
                                           'are linear')
-            self.data, self.source = self._checked_tensor(p.raw('data'), p), 'data tensor'
+            # our own tensor object over the caller's texels: gradients enabled on ours (through
+            # mi.traverse) must not reach another texture built from the same tensor
+            self.data = mi.TensorXf(self._checked_tensor(p.raw('data'), p))
+            self.source = 'data tensor'
         elif source == 'filename':
             name = p.string('filename', None)
             if not name.strip():
