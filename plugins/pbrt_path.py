@@ -162,6 +162,9 @@ class Plugin:
             if a not in AOV_CHANNELS:
                 raise p.error('aovs', f'unknown output "{a}"; accepted values: '
                                       f'{", ".join(AOV_CHANNELS)}')
+            if self.aov_list.count(a) > 1:          # the film refuses repeated channel names
+                raise p.error('aovs', f'output "{a}" is named twice; accepted values (each at '
+                                      f'most once): {", ".join(AOV_CHANNELS)}')
         p.finish()
         self.total_spp = None
         self.cache = SceneCache()       # what the last scene and sensor need (scene_needs)
@@ -245,9 +248,11 @@ class Plugin:
         (:class:`~mitsuba_pbrt_tex.film_view.PixelSensor`, carrying the scope)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        if self.footprint_mode != 'pixel' or not self.scene_needs(scene).differentials:
+        if self.footprint_mode != 'pixel':
             return sensor
-        self.pixel_sensor(sensor)                   # the errors, in our words
+        self.pixel_sensor(sensor)       # the errors, in our words, whatever the textures
+        if not self.scene_needs(scene).differentials:
+            return sensor
         film = sensor.film()
         if film.rfilter().class_name() == 'BoxFilter':
             return sensor

@@ -378,6 +378,9 @@ def test_integrator_parameter_errors_and_variants():
     for d, words in [({'type': 'pbrt_path', 'spp_scale': 'sqrt'}, ['"spp_scale"', 'pbrt, none']),
                      ({'type': 'pbrt_path', 'spp_scale': -1.0}, ['"spp_scale"', '> 0']),
                      ({'type': 'pbrt_path', 'aovs': 'depth'}, ['"aovs"', 'duv_dx, duv_dy']),
+                     # the film refused the repeated channels at render time with a raw error
+                     ({'type': 'pbrt_path', 'aovs': 'duv_dx, duv_dx'},
+                      ['"aovs"', '"duv_dx" is named twice', 'duv_dx, duv_dy']),
                      ({'type': 'pbrt_path', 'max_depth': -2}, ['"max_depth"', '>= -1']),
                      ({'type': 'pbrt_path', 'maxdepth': 3}, ["unknown parameter 'maxdepth'"])]:
         with pytest.raises(RuntimeError) as e:
