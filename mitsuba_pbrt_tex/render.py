@@ -155,16 +155,30 @@ _OURS_RE = re.compile(r'^(?:\w+\.)*(?:PluginError|ImageError|UnsupportedVariantE
                       re.M)
 
 
+def _chain(e: BaseException) -> list:
+    """``e`` and the exceptions it was raised from (Dr.Jit's wrappers — a loop's, a custom
+    operation's — carry the real error as their cause and say only "see above")."""
+    out = []
+    while e is not None and e not in out:
+        out.append(e)
+        e = e.__cause__ or e.__context__
+    return out
+
+
 def error_line(e: BaseException) -> str:
     """One line for an exception Mitsuba raised while loading/rendering: our plugin's message
-    (with the scene position) when a plugin of ours refused a parameter, Mitsuba's own message
-    otherwise, without the C++ source position and without the Python traceback."""
-    text = str(e)
-    at = _AT_RE.search(text)
-    ours = _OURS_RE.findall(text)
-    if ours:
-        msg = ours[-1].strip()
-        return f'{at.group(1)}: {msg}' if at else msg
+    (with the scene position) when a plugin of ours refused a parameter — also where it is the
+    cause of a wrapper's error — Mitsuba's own message otherwise (the innermost one where the
+    outer only points at it), without the C++ source position and without the Python
+    traceback."""
+    chain = _chain(e)
+    at = _AT_RE.search(str(e))
+    for link in chain:
+        ours = _OURS_RE.findall(f'{type(link).__name__}: {link}') or _OURS_RE.findall(str(link))
+        if ours:
+            msg = ours[-1].strip()
+            return f'{at.group(1)}: {msg}' if at else msg
+    text = str(chain[-1] if '(see above)' in str(e) else e)
     text = text.split('Traceback (most recent call last)')[0]
     text = re.sub(r'\[[\w.]+:\d+\]\s*', '', text)
     text = ' '.join(text.split()).rstrip(':')

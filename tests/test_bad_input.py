@@ -489,6 +489,22 @@ def _one_error_line(rc, err, fragments, status=2):
         assert f in lines[0], (f, lines[0])
 
 
+def test_cli_render_time_errors_name_their_cause(scenes):
+    """An error raised inside mi.render reaches Python as the cause of Dr.Jit's custom-operation
+    error, which says only "(see above)": the CLI's one line is the cause's (found in a user
+    trial: pixel footprints with a tent film filter printed 'rendering failed: drjit.custom(...)
+    ... (see above)', with nothing above)."""
+    tent = SCENE.format(head='', body=textured('tex.png')).replace(
+        '<integrator type="pbrt_path"/>',
+        '<integrator type="pbrt_path"><string name="footprint" value="pixel"/></integrator>'
+    ).replace('<film type="hdrfilm">', '<film type="hdrfilm"><rfilter type="tent"/>')
+    (scenes / 'tent.xml').write_text(tent)
+    (rc, _, err), = run_cli_batch([['render', str(scenes / 'tent.xml'), '-o',
+                                    str(scenes / 'out' / 'img.exr')]])
+    _one_error_line(rc, err, ['rendering failed: pbrt_path: parameter "footprint": value "pixel" '
+                              'needs the film filter "box" or "gaussian", got TentFilter'])
+
+
 def test_cli_bad_input_battery(scenes):
     """Every user error: one ``error:`` line, exit status 2, nothing rendered or overwritten."""
     d = str(scenes)
