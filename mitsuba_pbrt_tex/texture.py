@@ -23,7 +23,7 @@ import mitsuba as mi
 
 from . import render_scope, variants
 from .differentials import TextureEvalContext
-from .params import Params
+from .params import Params, PluginError
 
 
 #: pbrt-v4's bump-mapping offset in u (and v) where the hit has no differentials.
@@ -232,7 +232,14 @@ class PbrtTexture:
                    else mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys=None) -> None:
-        self.on_parameters_changed(list(keys or []))
+        keys = list(keys or [])
+        for name in keys or [*self._values, *self._nested]:
+            if name in self._values:
+                check_finite_update(self.NAME, name, self._values[name][0])
+            elif name in self._nested and not self._nested[name].is_spatially_varying():
+                # a float or rgb value (Mitsuba's uniform/srgb texture): its mean is the value
+                check_finite_update(self.NAME, name, self._nested[name].mean(), ' (its mean)')
+        self.on_parameters_changed(keys)
 
     def on_parameters_changed(self, keys: list[str]) -> None:
         """React to changed parameters (override)."""
@@ -244,6 +251,16 @@ class PbrtTexture:
         for name, (value, _) in self._values.items():
             parts.append(f'{name}={_short(value)}')
         return f'{self.NAME}[' + ', '.join(parts) + ']'
+
+
+def check_finite_update(plugin: str, name: str, value, what: str = '') -> None:
+    """A value set through ``mi.traverse`` must be finite, as at construction (a NaN or inf
+    parameter would put NaN or inf in every image): else an error naming the fix."""
+    v = dr.detach(value)
+    if not bool(dr.all(dr.isfinite(v), axis=None)):
+        raise PluginError(f'{plugin}: parameter "{name}": value {_short(v)}{what} set through '
+                          f'mi.traverse is not finite; accepted values: finite numbers (set one '
+                          f'and call params.update() again)')
 
 
 def _short(obj) -> str:

@@ -9,7 +9,7 @@
 
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.texture import PbrtTexture
+from mitsuba_pbrt_tex.texture import PbrtTexture, check_finite_update
 
 
 class Plugin(PbrtTexture):
@@ -35,6 +35,9 @@ class Plugin(PbrtTexture):
 
     def traverse(self, cb):
         cb.put('value', self.value, mi.ParamFlags.Differentiable)
+
+    def on_parameters_changed(self, keys):
+        check_finite_update(self.NAME, 'value', self.value)
 
     def to_string(self):
         return f'{self.NAME}[value={self.value}]'

@@ -327,6 +327,46 @@ def test_nan_texels_through_params_update_become_zero():
         np.testing.assert_allclose(A(tex.mean()), A(ref.mean()), rtol=1e-6)
 
 
+NONFINITE_UPDATES = [   # (texture, key under it, parameter the error names, mean-of note)
+    ({'type': 'pbrt_imagemap', 'data': mi.TensorXf(np.full((4, 4, 3), 0.5, np.float32))},
+     'scale', 'scale', False),
+    ({'type': 'pbrt_constant', 'value': 0.5}, 'value', 'value', False),
+    ({'type': 'pbrt_checkerboard', 'tex1': 0.3}, 'tex1.value', 'tex1', True),
+    ({'type': 'pbrt_scale', 'tex': 0.5, 'scale': 2.0}, 'scale.value', 'scale', True),
+    ({'type': 'pbrt_bilerp'}, 'v00.value', 'v00', True),
+    ({'type': 'pbrt_dots', 'inside': 0.5}, 'inside.value', 'inside', True),
+    ({'type': 'pbrt_mix', 'tex1': {'type': 'rgb', 'value': [0.1, 0.2, 0.3]}}, 'tex1.value',
+     'tex1', True),
+    # a pbrt_constant nested in ours: its own check names it
+    ({'type': 'pbrt_scale', 'tex': {'type': 'pbrt_constant', 'value': 0.5}}, 'tex.value',
+     'value', False),
+]
+
+
+@pytest.mark.parametrize('case', range(len(NONFINITE_UPDATES)))
+@pytest.mark.parametrize('bad', [float('nan'), float('inf')])
+def test_nonfinite_parameters_through_params_update_are_refused(case, bad):
+    """NaN and inf are refused at construction; set through mi.traverse they are refused by
+    params.update() with the plugin and parameter named (found in a user trial: accepted
+    silently, they rendered NaN/inf pixels). Texels are the exception: they become 0 with a
+    warning (above)."""
+    tex, key, name, mean = NONFINITE_UPDATES[case]
+    scene = mi.load_dict({'type': 'scene', 'shape': {'type': 'rectangle', 'bsdf': {
+        'type': 'diffuse', 'reflectance': tex}}})
+    p = mi.traverse(scene)
+    full = 'shape.bsdf.reflectance.' + key
+    value = p[full]
+    p[full] = mi.Color3f(0.2, bad, 0.3) if isinstance(value, mi.Color3f) else type(value)(bad)
+    with pytest.raises(Exception) as e:
+        p.update()
+    plugin = tex['type'] if name != 'value' or tex['type'] == 'pbrt_constant' else 'pbrt_constant'
+    text = str(e.value)
+    for word in (f'{plugin}: parameter "{name}"', 'set through mi.traverse is not finite',
+                 'accepted values: finite numbers'):
+        assert word in text, (word, text)
+    assert ('(its mean)' in text) == mean
+
+
 @pytest.mark.parametrize('filt', ['bilinear', 'trilinear', 'ewa', 'box'])
 @pytest.mark.parametrize('source', ['data', 'file'])
 def test_texels_near_float32_max_stay_finite(filt, source, tmp_path):
