@@ -13,10 +13,11 @@
 NaN/inf/1e30 uv, e.g. from an OBJ's bad ``vt`` entries), so the value is always finite.
 """
 
+import drjit as dr
 import mitsuba as mi
 
 from mitsuba_pbrt_tex.mapping import finite_st, mapping_2d
-from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
+from mitsuba_pbrt_tex.texture import FLOAT32_MAX, PbrtTexture, nested_mean
 
 
 class Plugin(PbrtTexture):
@@ -34,10 +35,16 @@ class Plugin(PbrtTexture):
         v = {n: self.nested_eval(n, si, kind, active) for n in ('v00', 'v01', 'v10', 'v11')}
         # pbrt's (1-s)(1-t)·v00 + (1-s)t·v01 + s(1-t)·v10 + st·v11 as two lerps of the form
         # a + x·(b - a): the same value, without products s·t that overflow or cancel far
-        # outside [0, 1]² (at s = t = 1e8 the expanded sum loses every digit)
+        # outside [0, 1]² (at s = t = 1e8 the expanded sum loses every digit). In float64: the
+        # differences of values near float32's maximum (3e38 and -3e38) would overflow to inf,
+        # and with s, t within ±1e8 nothing overflows there; the result is then float32's
+        # nearest, ±its largest finite value beyond
+        T = type(v['v00'])
+        v = {n: dr.float64_array_t(T)(x) for n, x in v.items()}
+        s, t = mi.Float64(s), mi.Float64(t)
         a = v['v00'] + t * (v['v01'] - v['v00'])
         b = v['v10'] + t * (v['v11'] - v['v10'])
-        return a + s * (b - a)
+        return T(dr.clip(a + s * (b - a), -FLOAT32_MAX, FLOAT32_MAX))
 
     def mean(self):
         return mi.Float(0.25 * sum(nested_mean(self._nested[n]) for n in ('v00', 'v01', 'v10', 'v11')))

@@ -11,6 +11,8 @@
 ``amount·tex1 + (1 - amount)·tex2`` (note: tex1 is weighted by amount, as in pbrt-v4).
 """
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 
@@ -27,9 +29,13 @@ class Plugin(PbrtTexture):
         to_world = p.transform('to_world', invertible=True)
         if to_world is not None:
             d = to_world @ d
-        if dr.norm(d) == 0:
+        # normalised in float64: float32's squared norm is 0 for subnormal vectors (1e-40,
+        # whose direction is well defined) and inf beyond ~1e19
+        d = [float(c) for c in d]
+        norm = math.sqrt(sum(c * c for c in d))
+        if not norm > 0:
             raise p.error('dir', 'must be a non-zero vector')
-        self.dir = dr.normalize(d)
+        self.dir = mi.ScalarVector3f(*(c / norm for c in d))
         self.describe('dir', list(self.dir))
 
     def evaluate(self, si, kind, active):

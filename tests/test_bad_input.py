@@ -207,6 +207,38 @@ def test_bilerp_is_finite_and_exact_at_bad_uv():
     np.testing.assert_allclose(got, want, rtol=1e-6)
 
 
+def test_bilerp_of_values_near_float32_max_is_finite_and_exact():
+    """Corner values up to float32's largest (accepted at construction) at bad uv too: the
+    lerps' differences (3e38 - -3e38) overflowed to -inf (found in a user trial). Against the
+    float64 formula at the clamped (s, t), rounded to float32 and beyond its range its largest
+    finite value of that sign (rtol 1e-6: float32's rounding of the float64 result)."""
+    fmax = float(np.finfo(np.float32).max)
+    corners = {'v00': 3e38, 'v01': 3e38, 'v10': -3e38, 'v11': -fmax}
+    t = mi.load_dict({'type': 'pbrt_bilerp', **corners})
+    uv = np.array(BAD_UV + [[0.5, 0.5], [0.25, 0.75], [1.0, 0.0]])
+    s, tt = _clamped(uv[:, 0]), _clamped(uv[:, 1])
+    a = 3e38 + tt * (3e38 - 3e38)
+    b = -3e38 + tt * (-fmax + 3e38)
+    want = np.clip(a + s * (b - a), -fmax, fmax).astype(np.float32)
+    got = A(t.eval_1(make_si(uv)))
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e32)
+
+
+@pytest.mark.parametrize('length', [1e-45, 1e-40, 1e-20, 1.0, 1e20, 3e38])
+def test_directionmix_direction_of_any_nonzero_length(length):
+    """dir is a direction: any non-zero length gives the same texture (float32's squared norm
+    of a subnormal vector is 0: dir (0, 0, 1e-40) gave NaN, found in a user trial). With dir
+    along the normal the value is tex1's, at 45° the blend's (exact: amount = √½)."""
+    t = mi.load_dict({'type': 'pbrt_directionmix', 'tex1': 0.2, 'tex2': 0.8,
+                      'dir': mi.ScalarVector3f(0, length, length)})
+    si = make_si([[0.5, 0.5]] * 2)
+    si.n = mi.Normal3f(mi.Float([0, 0]), mi.Float([0.6, 1]), mi.Float([0.8, 0]))
+    got = A(t.eval_1(si))
+    amount = np.array([1.4 / np.sqrt(2), 1 / np.sqrt(2)])
+    np.testing.assert_allclose(got, 0.2 + (1 - amount) * 0.6, rtol=1e-6)
+
+
 def test_uv_texture_is_finite_and_exact_at_bad_uv():
     t = mi.load_dict({'type': 'pbrt_uv'})
     uv = np.array(BAD_UV)
