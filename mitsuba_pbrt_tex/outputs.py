@@ -10,6 +10,7 @@ user's umask (not the 0600 of the temporary file).
 from __future__ import annotations
 
 import os
+import re
 import signal
 import tempfile
 import threading
@@ -91,13 +92,30 @@ def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return np.clip(np.round(srgb * 255), 0, 255).astype(np.uint8)
 
 
+#: The PNG text entry that marks our renders (``render`` replaces only PNGs that carry it).
+_GENERATOR = ('generator', 'mitsuba_pbrt_tex')
+
+
 def write_png(path: str, rgb: np.ndarray, exposure: float = 0.0) -> None:
+    """Tone-mapped 8-bit sRGB PNG, marked as ours (:func:`written_by_us`)."""
     import mitsuba as mi
     img = tonemap(np.asarray(rgb, dtype=np.float64)[..., :3], exposure)
     if img.shape[2] == 1:
         img = np.repeat(img, 3, axis=2)
     bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
+    bmp.metadata()[_GENERATOR[0]] = _GENERATOR[1]
     _atomic(path, lambda tmp: bmp.write(tmp))
+
+
+def written_by_us(path: str) -> bool:
+    """Does the PNG at ``path`` carry :func:`write_png`'s mark (a tEXt chunk before the image
+    data)?"""
+    key, value = _GENERATOR
+    with open(path, 'rb') as f:
+        head = f.read(1 << 16)
+    # (Mitsuba 3.9 writes the value in quotes)
+    return head.startswith(b'\x89PNG') and re.search(
+        b'tEXt' + key.encode() + b'\0"?' + value.encode(), head) is not None
 
 
 def save_figure(fig, path: str, dpi: int) -> None:

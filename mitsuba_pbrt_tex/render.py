@@ -137,9 +137,25 @@ def check_writable(path: str) -> None:
 
 
 def check_not_inputs(paths, inputs: set[str]) -> None:
+    """None of ``paths`` is one of ``inputs`` — by path, or as the same file under another
+    name (a hard link)."""
     for p in paths:
-        if os.path.realpath(p) in inputs:
+        same = os.path.realpath(p) in inputs or (
+            os.path.exists(p) and any(os.path.exists(i) and os.path.samefile(p, i)
+                                      for i in inputs))
+        if same:
             raise RenderError(f'refusing to overwrite "{p}": it is the scene or one of its inputs')
+
+
+def check_png_twin(png_path: str) -> None:
+    """The ``.png`` written beside the ``.exr`` named by ``-o`` may replace only an earlier
+    render's (marked by :func:`~mitsuba_pbrt_tex.outputs.write_png`), never a file of yours
+    that happens to have that name."""
+    from .outputs import written_by_us
+    if os.path.isfile(png_path) and not written_by_us(png_path):
+        raise RenderError(f'refusing to overwrite "{png_path}" (the .png written beside the .exr): '
+                          f'it exists and is not an earlier render of this command; choose '
+                          f'another -o or move the file')
 
 
 def check_output(scene_path: str, out_path: str) -> tuple[str, str]:
@@ -247,6 +263,7 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     mpt.register()
     inputs = scene_inputs(scene_path)       # with this variant's file resolver
     check_not_inputs((exr_path, png_path), inputs)
+    check_png_twin(png_path)
     from .image import files_read
     t0 = time.perf_counter()
     try:

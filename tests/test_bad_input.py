@@ -577,6 +577,28 @@ def test_cli_render_time_errors_name_their_cause(scenes):
                               'needs the film filter "box" or "gaussian", got TentFilter'])
 
 
+def test_cli_png_twin_replaces_only_earlier_renders(scenes):
+    """-o X.exr also writes X.png: an existing X.png of the user's is refused (found in a user
+    trial: a holiday photo was replaced silently); an earlier render's PNG (marked when written)
+    is replaced; and a marked PNG the scene reads under another name (a hard link) is still an
+    input (the path comparison missed hard links)."""
+    d = scenes
+    (d / 'mine.png').write_bytes(b'my own file')
+    first = run_cli_batch([['render', str(d / 'ok.xml'), '-o', str(d / 'mine.exr')],
+                           ['render', str(d / 'ok.xml'), '-o', str(d / 'prev.exr')],
+                           ['render', str(d / 'ok.xml'), '-o', str(d / 'prev.exr')]])
+    _one_error_line(first[0][0], first[0][2], ['refusing to overwrite', 'mine.png',
+                                               'not an earlier render'])
+    assert (d / 'mine.png').read_bytes() == b'my own file'
+    assert not (d / 'mine.exr').exists()
+    assert first[1][0] == 0 and first[2][0] == 0, (first[1][2], first[2][2])   # re-render
+    os.link(d / 'prev.png', d / 'linked.png')
+    (d / 'reads_linked.xml').write_text(SCENE.format(head='', body=textured('linked.png')))
+    (rc, _, err), = run_cli_batch([['render', str(d / 'reads_linked.xml'), '-o',
+                                    str(d / 'prev.exr')]])
+    _one_error_line(rc, err, ['refusing to overwrite', 'prev.png', 'one of its inputs'])
+
+
 def test_cli_bad_input_battery(scenes):
     """Every user error: one ``error:`` line, exit status 2, nothing rendered or overwritten."""
     d = str(scenes)
