@@ -62,6 +62,10 @@ def _info(args) -> int:
         print(f'error: unknown plugin(s) {", ".join(unknown)}; plugins: {", ".join(PLUGINS)}',
               file=sys.stderr)
         return 2
+    if args.bench_results and not args.update_readme:
+        print('error: --bench-results is read by --update-readme only; give both (nothing was '
+              'changed)', file=sys.stderr)
+        return 2
     if args.update_readme:
         try:
             changed = docs.update_readme(args.update_readme, args.bench_results)

@@ -45,6 +45,12 @@ def _type_name(props: mi.Properties, name: str) -> str:
     return _TYPE_NAMES.get(t, t.lower())
 
 
+def _a_type(props: mi.Properties, name: str) -> str:
+    """``a float``, ``an integer``, ``an rgb`` … for error messages."""
+    kind = _type_name(props, name)
+    return f'{"an" if kind[0] in "aeiour" else "a"} {kind}'
+
+
 def _value_text(props: mi.Properties, name: str) -> str:
     """``an rgb value ([1, 0, 0])`` etc. for error messages."""
     kind = _type_name(props, name)
@@ -96,7 +102,7 @@ class Params:
         if key is None:
             return float(default)
         if self._kind(key) not in ('Float', 'Integer'):
-            raise self.error(key, f'expected a float, got a {_type_name(self.props, key)} '
+            raise self.error(key, f'expected a float, got {_a_type(self.props, key)} '
                                   f'({self.props[key]!r})')
         value = float(self.props[key])
         self._check_range(key, value, lo, hi, lo_open)
@@ -110,7 +116,7 @@ class Params:
         if self._kind(key) == 'Float' and float(self.props[key]).is_integer():
             value = int(self.props[key])
         elif self._kind(key) != 'Integer':
-            raise self.error(key, f'expected an integer, got a {_type_name(self.props, key)} '
+            raise self.error(key, f'expected an integer, got {_a_type(self.props, key)} '
                                   f'({self.props[key]!r})')
         else:
             value = int(self.props[key])
@@ -122,8 +128,8 @@ class Params:
         if key is None:
             return bool(default)
         if self._kind(key) != 'Bool':
-            raise self.error(key, f'expected a boolean (true or false), got a '
-                                  f'{_type_name(self.props, key)} ({self.props[key]!r})')
+            raise self.error(key, f'expected a boolean (true or false), got '
+                                  f'{_a_type(self.props, key)} ({self.props[key]!r})')
         return bool(self.props[key])
 
     def string(self, name: str, default: str | None, *, alias: str | None = None) -> str | None:
@@ -131,7 +137,7 @@ class Params:
         if key is None:
             return default
         if self._kind(key) != 'String':
-            raise self.error(key, f'expected a string, got a {_type_name(self.props, key)}')
+            raise self.error(key, f'expected a string, got {_a_type(self.props, key)}')
         return str(self.props[key])
 
     def enum(self, name: str, default: str, choices: Iterable[str], *, alias: str | None = None,
@@ -142,7 +148,7 @@ class Params:
         if key is None:
             return default
         if self._kind(key) != 'String':
-            raise self.error(key, f'expected a string, got a {_type_name(self.props, key)}; '
+            raise self.error(key, f'expected a string, got {_a_type(self.props, key)}; '
                                   f'accepted values: {", ".join(choices)}')
         value = str(self.props[key])
         if key == alias and alias_choices is not None:
@@ -181,8 +187,8 @@ class Params:
         if kind in ('Float', 'Integer'):
             return self.float(name, default)
         if kind != 'Color':
-            raise self.error(key, f'expected a float or an rgb value, got a '
-                                  f'{_type_name(self.props, key)}')
+            raise self.error(key, f'expected a float or an rgb value, got '
+                                  f'{_a_type(self.props, key)}')
         c = self.props[key]
         rgb = (float(c[0]), float(c[1]), float(c[2]))
         self._check_finite(key, *rgb)
@@ -195,7 +201,7 @@ class Params:
             return mi.ScalarVector3f(default)
         if self._kind(key) not in ('Vector', 'Color'):
             raise self.error(key, f'expected a 3D vector (e.g. <vector name="{key}" x="1" y="0" '
-                                  f'z="0"/>), got a {_type_name(self.props, key)}')
+                                  f'z="0"/>), got {_a_type(self.props, key)}')
         v = self.props[key]
         xyz = (float(v[0]), float(v[1]), float(v[2]))
         self._check_finite(key, *xyz)
@@ -209,7 +215,7 @@ class Params:
         if key is None:
             return None
         if self._kind(key) != 'Transform':
-            raise self.error(key, f'expected a transform, got a {_type_name(self.props, key)}')
+            raise self.error(key, f'expected a transform, got {_a_type(self.props, key)}')
         m = self.props[key].matrix
         values = [float(m[i][j]) for i in range(4) for j in range(4)]
         if not all(math.isfinite(x) for x in values):
@@ -257,8 +263,8 @@ class Params:
                 c = self.props[key]
                 self._check_finite(key, float(c[0]), float(c[1]), float(c[2]))
             return self.props.get_unbounded_texture(key)
-        raise self.error(key, f'expected a float, an rgb value or a nested texture, got a '
-                              f'{_type_name(self.props, key)}')
+        raise self.error(key, f'expected a float, an rgb value or a nested texture, got '
+                              f'{_a_type(self.props, key)}')
 
     def raw(self, name: str):
         """Any value (used for runtime-only objects such as tensors)."""

@@ -5,7 +5,7 @@
 | tex1 | float, rgb, texture | 1 | the even cells (floor(s) + floor(t) even) | yes |
 | tex2 | float, rgb, texture | 0 | the odd cells | yes |
 | dimension | integer | 2 | 2 (uses the 2D mapping) or 3 (solid, uses p in texture space) | no |
-| aamode | string | triangle | `none` (point sample), `box` (pbrt-v3 closed form; alias `closedform`), `triangle` (pbrt-v4) or `area` (2D: the exact average over the footprint parallelogram, pixel-centred under `pbrt_path` `footprint="pixel"`) | no |
+| aamode | string | triangle | `none` (point sample), `box` (pbrt-v3 closed form; alias `closedform`), `triangle` (pbrt-v4) or `area` (dimension 2 only: the exact average over the footprint parallelogram, pixel-centred under `pbrt_path` `footprint="pixel"`) | no |
 | (2D mapping) | | | dimension 2: mapping parameters, see the mapping table | no |
 | (3D mapping) | | | dimension 3: the texture-space transform, see the mapping table | no |
 
@@ -48,6 +48,10 @@ class Plugin(PbrtTexture):
         if self.dimension not in (2, 3):
             raise p.error('dimension', f'unknown value {self.dimension}; accepted values: 2, 3')
         self.aamode = p.enum('aamode', 'triangle', AAMODES)
+        if self.dimension == 3 and self.aamode == 'area':
+            raise p.error('aamode', 'value "area" is for dimension 2 (the footprint '
+                                    'parallelogram in (s, t)); accepted values with dimension 3: '
+                                    + ', '.join(m for m in AAMODES if m != 'area'))
         self.mapping = mapping_2d(p) if self.dimension == 2 else mapping_3d(p)
         for name in ('dimension', 'aamode'):
             self.describe(name, getattr(self, name))
@@ -66,8 +70,7 @@ class Plugin(PbrtTexture):
                             _width(tc.dpdx.z, tc.dpdy.z)), self._closed_form())
 
     def _closed_form(self) -> str:
-        """The closed form of the mode (``area`` falls back to ``box`` where it does not hold,
-        and in 3D)."""
+        """The closed form of the mode (``area`` falls back to ``box`` where it does not hold)."""
         return 'box' if self.aamode == 'area' else self.aamode
 
     def _weight_2d(self, ctx):

@@ -639,6 +639,8 @@ def test_cli_bad_input_battery(scenes):
         (['render', f'{d}/ok.xml', '-o', out, '--spp', str(2**32)], ['--spp must be <= 4294967295']),
         (['render', f'{d}/ok.xml', '-o', out, '--spp', str(2**31)],
          ['is too many for one image of 16x12', '2^32 - 1']),
+        # info --bench-results alone was ignored silently (found in a user trial)
+        (['info', '--bench-results', f'{d}/ok.xml'], ['--bench-results is read by --update-readme']),
         # info --update-readme on a file without the markers
         (['info', '--update-readme', f'{d}/ok.xml'],
          ['has no section between the lines <!-- BEGIN PLUGIN REFERENCE -->', 'nothing was changed']),

@@ -140,6 +140,10 @@ def test_errors_name_plugin_parameter_and_choices():
         ({'type': 'pbrt_bilerp', 'uscale': 'x'}, ['pbrt_bilerp', '"uscale"', 'expected a float']),
         ({'type': 'pbrt_uv', 'uscale': float('nan')}, ['pbrt_uv', '"uscale"', 'finite']),
         ({'type': 'pbrt_scale', 'scale': {'type': 'diffuse'}}, ['pbrt_scale', '"scale"', 'nested texture']),
+        # found in a user trial: 3D "area" silently ran "box"; "got a integer"
+        ({'type': 'pbrt_checkerboard', 'dimension': 3, 'aamode': 'area'},
+         ['pbrt_checkerboard', '"aamode"', 'for dimension 2', 'none, box, closedform, triangle']),
+        ({'type': 'pbrt_imagemap', 'filename': 3}, ['"filename"', 'got an integer']),
     ]
     for d, words in cases:
         with pytest.raises(RuntimeError) as e:
