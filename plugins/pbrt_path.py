@@ -248,11 +248,10 @@ class Plugin:
         (:class:`~mitsuba_pbrt_tex.film_view.PixelSensor`, carrying the scope)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        if self.footprint_mode != 'pixel':
+        if self.footprint_mode != 'pixel' or not self.scene_needs(scene).differentials:
             return sensor
-        self.pixel_sensor(sensor)       # the errors, in our words, whatever the textures
-        if not self.scene_needs(scene).differentials:
-            return sensor
+        self.pixel_sensor(sensor)       # the errors, in our words (only textures that read
+        #                                 the footprint make the sensor and film matter)
         film = sensor.film()
         if film.rfilter().class_name() == 'BoxFilter':
             return sensor

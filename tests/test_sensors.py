@@ -186,13 +186,10 @@ def test_camera_approximation_after_bounces(kind):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-4 * np.abs(want).max())
 
 
-@pytest.mark.parametrize('texture', ['pbrt_imagemap', 'bitmap'])
-def test_pixel_footprints_are_refused_clearly_without_a_perspective_sensor(texture):
-    """Also where no texture reads the footprint (found in a user trial: with only Mitsuba
-    textures the setting was accepted silently)."""
-    tex = {'type': texture, 'filename': 'scenes/textures/checker.png'}
-    if texture == 'pbrt_imagemap':
-        tex['filter'] = 'box'
+def test_pixel_footprints_are_refused_clearly_without_a_perspective_sensor():
+    """(Where a texture reads the footprint: with Mitsuba's textures only the setting changes
+    nothing and renders as prb, tests/test_pixel_footprint.py.)"""
+    tex = {'type': 'pbrt_imagemap', 'filename': 'scenes/textures/checker.png', 'filter': 'box'}
     scene = _scene('orthographic', {'type': 'pbrt_path', 'footprint': 'pixel'}, tex)
     with pytest.raises(RuntimeError) as e:
         mi.render(scene, spp=1)
