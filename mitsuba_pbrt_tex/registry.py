@@ -21,6 +21,7 @@ import threading
 import mitsuba as mi
 
 from . import variants
+from .params import PluginError
 
 TEXTURES = (
     'pbrt_constant', 'pbrt_scale', 'pbrt_mix', 'pbrt_directionmix', 'pbrt_bilerp', 'pbrt_uv',
@@ -51,10 +52,15 @@ def variant_class(impl: type, base: type) -> type:
     precheck = getattr(impl, 'precheck', None)
 
     def __init__(self, props):
-        if precheck is not None:          # errors in our words before the base class reads props
-            precheck(props)
-        base.__init__(self, props)
-        self.setup(props)
+        try:
+            if precheck is not None:      # errors in our words before the base class reads props
+                precheck(props)
+            base.__init__(self, props)
+            self.setup(props)
+        except PluginError as e:
+            # raised afresh here: Mitsuba's parser quotes the traceback of what a Python plugin
+            # raises, and the frames inside our plugin say nothing the message does not
+            raise PluginError(str(e)) from None
 
     namespace['__init__'] = __init__
     namespace['_pbrt_impl'] = impl
