@@ -157,6 +157,9 @@ class CameraFootprint:
         # none (all zero): no footprint at all, not the rounding of placing a zero one at p
         self.exists = ((dr.squared_norm(self.min_pos_x) + dr.squared_norm(self.min_dir_x) > 0)
                        & (dr.squared_norm(self.min_pos_y) + dr.squared_norm(self.min_dir_y) > 0))
+        # evaluated now: left lazy, the first render would compute them inside its kernel and
+        # every later one read them, two kernels to compile for one scene
+        dr.eval(self.min_pos_x, self.min_pos_y, self.min_dir_x, self.min_dir_y, self.exists)
 
     @staticmethod
     def _shortest(vectors) -> list:
