@@ -639,6 +639,10 @@ def test_cli_bad_input_battery(scenes):
         (['render', f'{d}/ok.xml', '-o', out, '--spp', str(2**32)], ['--spp must be <= 4294967295']),
         (['render', f'{d}/ok.xml', '-o', out, '--spp', str(2**31)],
          ['is too many for one image of 16x12', '2^32 - 1']),
+        # bench render: the real scene's name without the data it needs (found in a user
+        # trial: no "error:" line, exit status 1)
+        (['bench', 'render', '--scenes', 'matpreview-photo', '--quick', '--out', f'{d}/bench'],
+         ['unknown scene(s) matpreview-photo', 'needs --mitsuba-data DIR', 'envlit-photo']),
         # info --bench-results alone was ignored silently (found in a user trial)
         (['info', '--bench-results', f'{d}/ok.xml'], ['--bench-results is read by --update-readme']),
         # info --update-readme on a file without the markers

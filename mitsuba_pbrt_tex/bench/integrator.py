@@ -75,9 +75,10 @@ def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench integrator',
                                  description=__doc__.split('\n\n')[0])
-    ap.add_argument('--spp', type=int, default=16)
-    ap.add_argument('--repeats', type=int, default=5)
-    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--spp', type=int, default=16, help='samples per pixel of each render')
+    ap.add_argument('--repeats', type=int, default=5,
+                    help='timed renders per configuration after a warm-up (medians reported)')
+    ap.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant')
     ap.add_argument('--res', default='320x180', help='image size WxH (default 320x180)')
     args = ap.parse_args(argv)
     try:

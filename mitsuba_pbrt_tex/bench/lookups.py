@@ -225,8 +225,9 @@ def main(argv=None) -> int:
     ap.add_argument('--anisotropy', type=float, default=8.0, help='major/minor axis ratio')
     ap.add_argument('--minor', type=float, default=1.5, help='minor axis length in texels')
     ap.add_argument('--maxanisotropy', type=float, default=8.0, help='EWA anisotropy clamp')
-    ap.add_argument('--repeats', type=int, default=7)
-    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--repeats', type=int, default=7,
+                    help='timed batches per filter after a warm-up (ranges reported)')
+    ap.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant')
     ap.add_argument('--sweep', default='3,6,12',
                     help='comma-separated larger minor axes (texels) at which EWA is timed again '
                          '(random uv; empty: none)')

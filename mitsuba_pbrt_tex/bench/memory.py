@@ -139,8 +139,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench memory',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--size', type=int, default=2048, help='image side in pixels (default 2048; '
-                    'the issue-13 measurement used 8192: 768 MiB, peaks near 3 GiB)')
-    ap.add_argument('--reloads', type=int, default=5)
+                    '8192 is a 768 MiB image, with peaks near 3 GiB)')
+    ap.add_argument('--reloads', type=int, default=5,
+                    help='times an edited image is reloaded in the cache measurement')
     ap.add_argument('--out', default=None, help='also write the report to this Markdown file')
     args = ap.parse_args(argv)
     if args.size < 1 or args.reloads < 0:

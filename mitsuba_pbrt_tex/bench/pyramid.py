@@ -159,7 +159,8 @@ def run(lookups=300, seed=3, out=print):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench pyramid',
                                  description=__doc__.split('\n\n')[0])
-    ap.add_argument('--lookups', type=int, default=300)
+    ap.add_argument('--lookups', type=int, default=300,
+                    help='random lookups per test image for the RMSE columns')
     args = ap.parse_args(argv)
     run(args.lookups)
     return 0

@@ -195,6 +195,12 @@ def cases(mitsuba_data=None, work_dir='bench-out') -> list[Case]:
     return out
 
 
+def _usage_error(message: str):
+    """A user error, as the command line reports them: one line, exit status 2."""
+    print(f'error: {message}', file=sys.stderr)
+    raise SystemExit(2)
+
+
 def envlit_case(mitsuba_data, work_dir, flat) -> Case:
     """A real scene as Mitsuba's users write it: Mitsuba's own ``matpreview`` (from
     ``--mitsuba-data``: Gaussian film, environment light, ``path`` to full depth) with its
@@ -226,8 +232,8 @@ def matpreview_scene(data_dir, work_dir):
     image = os.path.join(data_dir, 'common', 'textures', 'floor_tiles.jpg')
     for f in (src, image):
         if not os.path.isfile(f):
-            raise SystemExit(f'--mitsuba-data: {f} does not exist (expected a checkout of '
-                             f'mitsuba-renderer/mitsuba-data)')
+            _usage_error(f'--mitsuba-data: {f} does not exist (expected a checkout of '
+                         f'mitsuba-renderer/mitsuba-data)')
     with open(src) as fh:
         text = fh.read()
     start = text.index('<texture type="checkerboard"')
@@ -464,8 +470,10 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
     selected = [c for c in every if not scene_names or c.name in scene_names]
     unknown = set(scene_names or []) - {c.name for c in every}
     if unknown:
-        raise SystemExit(f'unknown scene(s) {", ".join(sorted(unknown))}; scenes: '
-                         f'{", ".join(c.name for c in every)}')
+        hint = ('; matpreview-photo needs --mitsuba-data DIR (without it the real-scene case is '
+                'its look-alike, envlit-photo)' if 'matpreview-photo' in unknown else '')
+        _usage_error(f'unknown scene(s) {", ".join(sorted(unknown))}; scenes: '
+                     f'{", ".join(c.name for c in every)}{hint}')
     os.makedirs(out_dir, exist_ok=True)
     rows, summary, t_start = [], [], time.perf_counter()
     total = sum(len(c.methods) for c in selected)
@@ -756,7 +764,7 @@ def main(argv=None) -> int:
     ap.add_argument('--out', default='bench-out', help='output folder (default bench-out)')
     ap.add_argument('--repeats', type=int, default=None, help='timed renders per point')
     ap.add_argument('--ref-spp', type=int, default=None, help='reference samples per pixel')
-    ap.add_argument('--variant', default='llvm_ad_rgb')
+    ap.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant')
     ap.add_argument('--mitsuba-data', default=None, metavar='DIR',
                     help="a checkout of mitsuba-renderer/mitsuba-data: the real-scene case then "
                          "renders Mitsuba's own matpreview scene with its floor_tiles.jpg (else "

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import textwrap
 import time
 
 import numpy as np
@@ -89,12 +90,16 @@ def _compose(path, left, right, left_title, right_title):
         return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
     h, w = left.shape[:2]
-    fig, axes = plt.subplots(1, 2, figsize=(2 * w / 100, h / 100 + 0.35), dpi=100)
-    for ax, img, title in zip(axes, (left, right), (left_title, right_title)):
+    # titles wrapped to their panel (8 pt at 100 dpi: ~6 pixels a character, 0.14 inch a line),
+    # so that narrow renders do not overlap them
+    titles = [textwrap.fill(t, max(12, w // 6)) for t in (left_title, right_title)]
+    head = 0.08 + 0.14 * max(t.count('\n') + 1 for t in titles)
+    fig, axes = plt.subplots(1, 2, figsize=(2 * w / 100, h / 100 + head), dpi=100)
+    for ax, img, title in zip(axes, (left, right), titles):
         ax.imshow(srgb(img), interpolation='nearest')
         ax.set_title(title, fontsize=8)
         ax.axis('off')
-    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0.01)
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=(h / 100) / (h / 100 + head), wspace=0.01)
     fig.savefig(path)
     plt.close(fig)
 
@@ -103,8 +108,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex demo horizon',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', default='renders', help='output folder (default renders)')
-    ap.add_argument('--width', type=positive_int, default=480)
-    ap.add_argument('--height', type=positive_int, default=270)
+    ap.add_argument('--width', type=positive_int, default=480, help='image width (pixels)')
+    ap.add_argument('--height', type=positive_int, default=270, help='image height (pixels)')
     ap.add_argument('--repeats', type=positive_int, default=3,
                     help='timed renders per method (the median counts)')
     args = ap.parse_args(argv)

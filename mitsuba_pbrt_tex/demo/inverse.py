@@ -200,7 +200,8 @@ def _report(cfg: Settings, history, frozen_rows, out_dir) -> list:
             # the first steps record the frozen function; the rest replay it
             settled = [b['seconds'] - a['seconds'] for a, b in zip(fr[2:], fr[3:])]
             replayed = (f'{1e3 * sum(settled) / len(settled):.0f} ms per replayed step'
-                        if settled else 'too few steps to time a replay (4 or more)')
+                        if settled else 'too few steps to time a replay: give --iterations 4 or '
+                                        'more')
             line += (f'; frozen (dr.freeze): {fr[-1]["seconds"] / len(fr) * 1e3:.0f} ms per step '
                      f'including recording, {replayed}, final texture RMSE '
                      f'{fr[-1]["texture_rmse"]:.4f}')
@@ -247,7 +248,7 @@ def plots(history, truth, finals, target_view, out_dir):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex demo inverse',
                                  description=__doc__.split('\n\n')[0])
-    ap.add_argument('--out', default='demo-out')
+    ap.add_argument('--out', default='demo-out', help='output folder (default demo-out)')
     ap.add_argument('--iterations', type=positive_int, default=None,
                     help='optimisation steps (default 60; 3 with --quick)')
     ap.add_argument('--res', type=positive_int, default=None,
