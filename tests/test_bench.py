@@ -58,7 +58,7 @@ def test_far_edge_rows_and_errors():
     assert e.row_noise == pytest.approx([0.02, 0.01, 0.01])
 
 
-def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path):
+def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path, capsys):
     """The Gaussian-film grazing case and the environment-lit real-scene case (bundled
     look-alike: its photo-like texture and environment map generated into the cache folder)
     run end to end; the real scene reports speed-ups at the built-in's 4 and 16 spp errors;
@@ -81,8 +81,9 @@ def test_render_benchmark_gaussian_film_and_environment_lit_cases(tmp_path):
     # the Gaussian film's pixel-footprint frame against bilinear's and the box film's
     assert len([s for s in summary if 'frame over' in s]) == 2
     assert (tmp_path / 'cache' / 'envlit-photo.png').exists()
-    with pytest.raises(SystemExit, match='matpreview.xml does not exist'):
+    with pytest.raises(SystemExit) as e:
         render.cases(str(tmp_path), str(tmp_path / 'cache'))
+    assert e.value.code == 2 and 'matpreview.xml does not exist' in capsys.readouterr().err
 
 
 def test_lookup_benchmark_runs():
