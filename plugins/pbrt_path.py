@@ -384,6 +384,10 @@ class Plugin:
         # left but the time below, and OptimizeLoops off in primal renders (sample()), the body
         # is traced once — tracing, in Python at every render, is a large part of its cost.
         diff = camera_diff if want and specular_scene else None
+        # the hits' shading-normal derivatives (RayFlags.All leaves them out, as 0) curve the
+        # differentials propagated through specular lobes: asked only where they are read
+        hit_flags = mi.RayFlags.All | mi.RayFlags.dNSdUV if diff is not None else \
+            mi.RayFlags.All
         first_duv_dx = mi.Vector2f(0) if want and self.aov_list else None
         first_duv_dy = mi.Vector2f(0) if want and self.aov_list else None
         decoded = mi.Point2f(0) if pixels is not None else None
@@ -414,12 +418,13 @@ class Plugin:
         while dr.hint(active, max_iterations=self.max_depth, label=f'pbrt_path ({mode.name})',
                       exclude=[scene, self, sensor, mode, primal, bsdf_ctx, mis_weight,
                                solid_angle_to_area_jacobian, want, scale, camera,
-                               specular_scene, reader_shapes, pixels, camera_diff]):
+                               specular_scene, reader_shapes, pixels, camera_diff,
+                               hit_flags]):
             active_next = mi.Bool(active)
 
             # ---- the hit, with derivative tracking in the differential phases --------------
             with dr.resume_grad(when=not primal):
-                si = pi.compute_surface_interaction(ray, ray_flags=mi.RayFlags.All)
+                si = pi.compute_surface_interaction(ray, ray_flags=hit_flags)
                 if dr.hint(not primal, mode='scalar'):
                     if depth >= 1:
                         si_prev_diff = pi_prev.compute_surface_interaction(
