@@ -138,8 +138,14 @@ class FilterPixels:
         self.size = (int(size[0]), int(size[1]))
         self.offset = mi.ScalarVector2f(film.crop_offset())
         self.lattice = Lattice(self.stddev, self.radius)
-        # the render's seed (an int, or a UInt32 under dr.freeze): opaque, one kernel for all
-        self.seed = seed if isinstance(seed, mi.UInt32) else dr.opaque(mi.UInt32, int(seed))
+        # the render's seed (an int, or a UInt32: a literal, as mi.UInt32(step) in a loop, or
+        # a frozen function's input): opaque, one kernel for all — a literal would be a
+        # constant of the kernels, a new kernel (and its memory) for every seed
+        if isinstance(seed, mi.UInt32):
+            self.seed = mi.UInt32(seed)          # our own copy: the caller's stays as it is
+            dr.make_opaque(self.seed)
+        else:
+            self.seed = dr.opaque(mi.UInt32, int(seed))
         self.n = None
 
     def draw(self, n: int):

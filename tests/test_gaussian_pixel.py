@@ -408,6 +408,31 @@ def test_texel_gradients_through_gaussian_pixel_footprint(forward, rng):
     tg.check_gradient(mi.load_dict(d), 'plane.bsdf.reflectance.data', rng, forward=forward)
 
 
+def test_differentiable_renders_with_uint32_seeds_reuse_their_kernels(rng):
+    """An optimisation loop passes ``seed=mi.UInt32(step)`` (a literal): the render's offsets
+    are drawn from an opaque copy of it, so every step runs the same kernels. Found in a user
+    trial: the literal became a constant of two kernels, compiled anew at every step (1 MiB of
+    memory and ~1 s a step). Dr.Jit's kernel history: steps 1 and 2 launch the same kernels."""
+    d = scene_dict(box_texture(rng, size=16), rfilter='gaussian', second_bsdf=False)
+    d['sensor']['film'].update(width=12, height=8)
+    scene = mi.load_dict(d)
+    params = mi.traverse(scene)
+    key = 'plane.bsdf.reflectance.data'
+    dr.enable_grad(params[key])
+    params.update()
+    launched = []
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for step in range(3):
+            dr.kernel_history_clear()
+            seed = mi.UInt32(step)
+            img = mi.render(scene, params, spp=1, seed=seed)
+            dr.backward(dr.mean(img, axis=None))
+            dr.eval(dr.grad(params[key]))
+            launched.append(sorted(k['hash'] for k in dr.kernel_history() if 'hash' in k))
+            assert seed.state == dr.VarState.Literal        # the caller's seed is untouched
+    assert launched[1] == launched[2]
+
+
 # ------------------------------------------------------------------ found by mutation testing
 def test_second_sensor_counts_samples_in_its_own_pixels(rng):
     """``mi.render(scene, sensor=1)`` with the Gaussian film: samples are decoded to pixels of
