@@ -340,14 +340,17 @@ def release_build_temporaries(pyramid: Pyramid) -> None:
 
 
 def file_key(path: str) -> tuple:
+    """What identifies a file's contents for the cache: its real path, inode, size and times —
+    the status-change time too, which every write moves and no tool sets back (``cp -p``,
+    ``rsync -t`` and ``tar x`` restore the modification time of an edited file)."""
     real = os.path.realpath(path)
     st = os.stat(real)
-    return real, st.st_mtime_ns, st.st_size
+    return real, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
 
 
 def load_image(path: str, encoding: Encoding | None) -> SharedImage:
     """The texels of ``path`` as a :class:`SharedImage` (read once per file, encoding and
-    variant; the key includes the modification time, so edited files are re-read)."""
+    variant; the key includes the file's times, so edited files are re-read)."""
     if not os.path.isfile(path):
         raise ImageError(f'file "{path}" does not exist')
     _note_read(path)

@@ -749,6 +749,32 @@ def test_image_cache_holds_only_what_live_textures_use(tmp_path):
     assert len(image_cache) == 0
 
 
+def test_image_edited_with_its_modification_time_restored_is_read_again(tmp_path):
+    """A file rewritten with the same size and its modification time set back (as ``cp -p``,
+    ``rsync -t`` or ``tar x`` leave an edited file) while a texture of the old contents is still
+    alive (``scene = mi.load_file(...)`` again): the new texture reads the new texels. Found in a
+    user trial: the cache, keyed by path, size and modification time, returned the old ones."""
+    path = str(tmp_path / 'img.pfm')
+
+    def write(value):                 # in place (same inode), always the same size
+        with open(path, 'wb') as f:
+            f.write(b'PF\n8 8\n-1.0\n' + np.full((8, 8, 3), value, '<f4').tobytes())
+
+    write(0.25)
+    old = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    st = os.stat(path)
+    time.sleep(0.02)                  # a status-change time the rewrite moves on any clock
+    write(0.75)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    after = os.stat(path)
+    assert (after.st_ino, after.st_size, after.st_mtime_ns) == \
+        (st.st_ino, st.st_size, st.st_mtime_ns)
+    new = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    si = make_si([[0.3, 0.3]])
+    assert A(old.eval_1(si))[0] == pytest.approx(0.25)
+    assert A(new.eval_1(si))[0] == pytest.approx(0.75)
+
+
 MEMORY_CHILD = r'''
 import gc, os, sys
 import drjit as dr, mitsuba as mi, mitsuba_pbrt_tex as mpt
