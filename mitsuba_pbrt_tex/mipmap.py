@@ -398,18 +398,23 @@ class MIPMap:
     def filter_single_level(self, kind: str, st, width, active):
         """``point`` or ``bilinear`` at the level ``width`` selects (pbrt-v4)."""
         lookup = self.point if kind == 'point' else self.bilinear
-        if not self.has_pyramid or len(self.sizes) == 1:
+        if not self.has_pyramid:
             return lookup(0, st, active)
         last = len(self.sizes) - 1
         level = self.whole_level_of(width)
+        if last == 0:                   # a 1×1 image: level 0 is the top (black wrap: its texel)
+            top = self._top_lanes(level, last)
+            return self._with_top(top, active, lookup(0, st, active & ~top))
         top = self._top_lanes(level, last)
         ilevel = mi.UInt32(dr.clip(level, 0, last))
         value = lookup(ilevel, st, active & ~top)
         return self._with_top(top, active, value)
 
     def trilinear(self, st, width, active):
-        if not self.has_pyramid or len(self.sizes) == 1:
+        if not self.has_pyramid:
             return self.bilinear(0, st, active)
+        if len(self.sizes) == 1:        # a 1×1 image: as a single-level lookup (pbrt's top rule)
+            return self.filter_single_level('bilinear', st, width, active)
         last = len(self.sizes) - 1
         level = dr.maximum(self.level_of(width), 0)
         top = self._top_lanes(level, last)

@@ -141,8 +141,10 @@ class Params:
         return str(self.props[key])
 
     def enum(self, name: str, default: str, choices: Iterable[str], *, alias: str | None = None,
-             alias_choices: dict[str, str] | None = None) -> str:
-        """A string from ``choices``; the alias (if any) maps through ``alias_choices``."""
+             alias_choices: dict[str, str] | None = None,
+             spellings: dict[str, str] | None = None) -> str:
+        """A string from ``choices`` (or another spelling of one, ``spellings``: pbrt's "EWA");
+        the alias (if any) maps through ``alias_choices``."""
         choices = list(choices)
         key = self._pick(name, alias)
         if key is None:
@@ -156,6 +158,7 @@ class Params:
                 raise self.error(key, f'unknown value "{value}"; accepted values: '
                                       f'{", ".join(alias_choices)}')
             return alias_choices[value]
+        value = (spellings or {}).get(value, value)
         if value not in choices:
             raise self.error(key, f'unknown value "{value}"; accepted values: {", ".join(choices)}')
         return value

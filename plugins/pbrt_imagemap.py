@@ -8,7 +8,7 @@ pbrt-v4's filters (pbrt section 10.4).
 | filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
 | bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
 | data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear float32 (runtime only; integer tensors are refused; ``params['...data']`` is this linear tensor for every source, where ``bitmap`` exposes 8-bit images as uint8 sRGB codes) | yes |
-| filter | string | bilinear | `point`, `bilinear`, `trilinear`, `ewa` or `box` (exact average over the footprint; not with wrap `octahedralsphere`) | no |
+| filter | string | bilinear | `point`, `bilinear`, `trilinear`, `ewa` (also `EWA`, as pbrt-v4) or `box` (exact average over the footprint; not with wrap `octahedralsphere`) | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
 | maxanisotropy | float | 8 | `ewa`: the longest axis is at most this many times the shortest (≥ 1) | no |
 | sortlookups | boolean | true | `ewa`: filter a large batch of scattered lookups sorted by texture tile, results in the caller's order (identical values, less waiting on memory; not inside symbolic loops/calls, where lookups cannot be reordered) | no |
@@ -133,7 +133,8 @@ class Plugin(PbrtTexture):
     # ------------------------------------------------------------------ parameters
     def configure(self, p):
         self.filter_name = p.enum('filter', 'bilinear', FILTERS, alias='filter_type',
-                                  alias_choices={'nearest': 'point', 'bilinear': 'bilinear'})
+                                  alias_choices={'nearest': 'point', 'bilinear': 'bilinear'},
+                                  spellings={'EWA': 'ewa'})      # pbrt-v4 reads both
         self.max_anisotropy = p.float('maxanisotropy', 8.0, lo=1.0)
         self.sort_lookups = p.bool('sortlookups', True)
         self.wrap = p.enum('wrap', 'repeat', WRAP_MODES, alias='wrap_mode',

@@ -463,6 +463,24 @@ def test_texels_within_the_limit_are_unchanged():
     np.testing.assert_array_equal(A(tex.eval_1(si)), img.reshape(-1))
 
 
+@pytest.mark.parametrize('filt', ['point', 'bilinear', 'trilinear'])
+def test_black_wrapped_1x1_image_follows_pbrts_top_level_rule(filt):
+    """pbrt-v4's MIPMap::Filter returns the top level's texel for footprints whose level is at
+    or beyond it: on a 1×1 image any width ≥ 1 (uv units), wherever the lookup is — with
+    ``black`` wrap too, whose taps outside the image are 0 (found in a user trial against a port
+    of pbrt-v4: 0.48 instead of 0.8 at u = 0.9, 0 at u = 3, while 2×2 images followed the
+    rule). Narrower footprints are the level-0 lookup: bilinear at u = 0.9 weighs the texel
+    0.6 and black 0.4; point reads the texel inside the image."""
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': filt, 'wrap': 'black',
+                        'data': tensor(np.full((1, 1, 1), 0.8, np.float32))})
+    tex.prepare_differentials()
+    uv = [[0.9, 0.5], [3.0, 0.5], [0.9, 0.5], [3.0, 0.5]]
+    d = [1.0, 1.0, 0.4, 0.4]
+    got = A(tex.eval_1(make_si(uv, duv_dx=[[w, 0] for w in d], duv_dy=[[0, w] for w in d])))
+    narrow = 0.8 if filt == 'point' else 0.8 * 0.6
+    np.testing.assert_allclose(got, [0.8, 0.8, narrow, 0.0], rtol=1e-6, atol=1e-7)
+
+
 def test_ewa_on_a_1x1_image_returns_its_texel_at_any_footprint():
     tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': 'ewa',
                         'data': tensor(np.full((1, 1, 1), 0.7))})

@@ -1313,3 +1313,18 @@ def test_eval_1_grad_is_finite_where_the_mapping_overflows(tex, rng):
         si = make_si(np.full((n, 2), 0.3), p=p, n=[0, 0, 1], dp_du=dp, dp_dv=[0, 1, 0])
         assert np.isfinite(A(t.eval_1(si))).all(), (tex['type'], dp)
         assert np.isfinite(A(t.eval_1_grad(si))).all(), (tex['type'], dp)
+
+
+def test_pbrt_v4_spelling_EWA_is_ewa(rng):
+    """pbrt-v4's ParseFilter reads "ewa" and "EWA" (found in a user trial: pbrt scenes spelling
+    it in capitals were refused). Same lookups, bit for bit; other capitalisations stay errors."""
+    data = mi.TensorXf(rng.random((16, 16, 3)).astype(np.float32))
+    si = make_si(rng.random((32, 2)), duv_dx=[[0.05, 0.01]] * 32, duv_dy=[[-0.01, 0.2]] * 32)
+    got = []
+    for name in ('ewa', 'EWA'):
+        tex = mi.load_dict({'type': 'pbrt_imagemap', 'filter': name, 'data': data})
+        tex.prepare_differentials()
+        got.append(A(tex.eval_3(si)))
+    np.testing.assert_array_equal(got[0], got[1])
+    with pytest.raises(RuntimeError, match='unknown value "Ewa"'):
+        mi.load_dict({'type': 'pbrt_imagemap', 'filter': 'Ewa', 'data': data})
