@@ -91,6 +91,20 @@ class _Shared:
     active: object
 
 
+def _any_literal(value) -> bool:
+    """Has ``value`` a component that is a literal (a constant of the kernel)? Such values are
+    not shared between a BSDF's queries: Dr.Jit's LLVM backend then emitted the constant inside
+    one query's branch and used it in the other's ("Instruction does not dominate all uses",
+    aborting the process: a ``pbrt_constant`` or ``pbrt_uv`` with a channel of 0 under
+    ``pbrt_path``), and a constant costs nothing to compute again."""
+    return any(dr.detail.collect_indices(c) and
+               getattr(c, 'state', None) == dr.VarState.Literal for c in _components(value))
+
+
+def _components(value):
+    return [value[i] for i in range(len(value))] if dr.depth_v(value) > 1 else [value]
+
+
 class PbrtTexture:
     """Shared behaviour of all ``pbrt_*`` textures (flattened into ``mi.Texture`` per variant)."""
 
@@ -173,7 +187,8 @@ class PbrtTexture:
         first = table.get(key)
         if first is None:
             value = self.evaluate(si, kind, active)
-            table[key] = _Shared(value, active)
+            if not _any_literal(value):         # (a literal is not worth sharing, see below)
+                table[key] = _Shared(value, active)
             return value
         rest = active & ~first.active
 

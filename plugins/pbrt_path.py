@@ -18,7 +18,9 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (the uv partials the textures read at the first hit, scaled by `spp_scale` as they are; 0 where no texture reads them or `texture_differentials` is false; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
-ray differentials (one pixel) scaled by ``spp_scale``, intersected with the tangent plane; after
+ray differentials (one pixel) scaled by ``spp_scale``, intersected with the tangent plane (rays
+that another integrator hands ``sample()`` — Mitsuba's ``moment``, ``aov`` — come as Mitsuba's
+``SamplingIntegrator`` passes them, already scaled by 1/√spp, and get the rest of the scale); after
 an ideal specular reflection or transmission, the ray differential propagated (dropped if an
 offset exceeds 1e16); everywhere else pbrt-v4's camera approximation, on the shapes whose
 textures read differentials. The partials are least-squares solved in the tangent frame, made
@@ -212,13 +214,19 @@ class Plugin:
             return SceneNeeds()
         return self.cache.needs(scene)
 
-    def trace_inputs(self, scene, sampler, sensor) -> TraceInputs:
-        """What one ``sample()`` hands its path loop, computed outside any symbolic loop."""
+    def trace_inputs(self, scene, sampler, sensor, own_rays: bool = True) -> TraceInputs:
+        """What one ``sample()`` hands its path loop, computed outside any symbolic loop.
+        ``own_rays``: the camera rays are this integrator's (:meth:`sample_rays`), one pixel
+        wide; else they are another integrator's, passed as Mitsuba's ``SamplingIntegrator``
+        passes them (``moment``, ``aov``): already scaled by 1/√spp, so only the rest of the
+        spp scale is applied."""
         needs = self.scene_needs(scene)
         spp = self.total_spp or sampler.sample_count()
         # opaque: the scale changes with spp, and a literal would recompile the kernel each time
         # (but a frozen function cannot record the host → device copy; spp is part of its key)
         scale = raydiff.spp_scale(spp, self.spp_mode)
+        if not own_rays:
+            scale *= math.sqrt(max(sampler.sample_count(), 1))
         scale = mi.Float(scale) if dr.flag(dr.JitFlag.FreezingScope) else dr.opaque(mi.Float, scale)
         camera = self.cache.camera(sensor) if needs.differentials else None
         return TraceInputs(needs, scale, camera)
@@ -226,18 +234,27 @@ class Plugin:
     # ------------------------------------------------------------------ rendering
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """``ADIntegrator.render`` on :meth:`begin`'s view of the sensor."""
-        return self._pbrt_base.render(self, scene, self.begin(scene, sensor, seed), seed, spp,
-                                      develop, evaluate)
+        try:
+            return self._pbrt_base.render(self, scene, self.begin(scene, sensor, seed), seed,
+                                          spp, develop, evaluate)
+        finally:
+            self._handover = None       # a later sample() from elsewhere gets foreign rays
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         """``RBIntegrator.render_forward`` on :meth:`begin`'s view of the sensor."""
-        return self._pbrt_base.render_forward(self, scene, params,
-                                              self.begin(scene, sensor, seed), seed, spp)
+        try:
+            return self._pbrt_base.render_forward(self, scene, params,
+                                                  self.begin(scene, sensor, seed), seed, spp)
+        finally:
+            self._handover = None
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         """``RBIntegrator.render_backward`` on :meth:`begin`'s view of the sensor."""
-        return self._pbrt_base.render_backward(self, scene, params, grad_in,
-                                               self.begin(scene, sensor, seed), seed, spp)
+        try:
+            return self._pbrt_base.render_backward(self, scene, params, grad_in,
+                                                   self.begin(scene, sensor, seed), seed, spp)
+        finally:
+            self._handover = None
 
     def begin(self, scene, sensor, seed=0):
         """Where a render starts: its :class:`~mitsuba_pbrt_tex.render_scope.RenderScope`, and
@@ -302,7 +319,8 @@ class Plugin:
         optimize = dr.flag(dr.JitFlag.OptimizeLoops) and mode != dr.ADMode.Primal
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, optimize):
             scope = self._handover or RenderScope(scene.sensors()[0])
-            inputs = self.trace_inputs(scene, sampler, scope.sensor)
+            inputs = self.trace_inputs(scene, sampler, scope.sensor,
+                                       own_rays=self._handover is not None)
             pixels = inputs.needs.differentials and self.pixel_sensor(scope.sensor) is not None
             if pixels and scope.pixels is None and \
                     scope.sensor.film().rfilter().class_name() != 'BoxFilter':

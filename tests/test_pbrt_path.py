@@ -1065,3 +1065,65 @@ def test_second_render_of_a_scene_compiles_no_new_kernel():
             kernels = [k for k in dr.kernel_history() if 'hash' in k]
             hashes.append(max(kernels, key=lambda k: k['operation_count'])['hash'])
     assert hashes[0] == hashes[1]
+
+
+@pytest.mark.parametrize('texture', [
+    {'type': 'pbrt_uv'},
+    {'type': 'pbrt_constant', 'value': {'type': 'rgb', 'value': [0.3, 0.5, 0.0]}}])
+def test_textures_with_a_constant_channel_render_as_under_prb(texture):
+    """A texture whose value has a constant channel (pbrt_uv's blue, an rgb constant's 0) as a
+    BSDF's reflectance: the primal bounce's two BSDF queries share texture lookups, and sharing
+    that constant aborted the process inside Dr.Jit's LLVM backend ("Instruction does not
+    dominate all uses"; found in a user trial). Neither reads differentials, so the image is
+    prb's with the same seed (float32 rounding: rtol 1e-5)."""
+    images = []
+    for integrator in ('pbrt_path', 'prb'):
+        scene = mi.load_dict({
+            'type': 'scene', 'integrator': {'type': integrator, 'max_depth': 3},
+            'sensor': {'type': 'perspective',
+                       'to_world': T().look_at([0, -2, 2], [0, 0, 0], [0, 0, 1]),
+                       'film': {'type': 'hdrfilm', 'width': 8, 'height': 8}},
+            'floor': {'type': 'rectangle', 'bsdf': {'type': 'diffuse', 'reflectance': texture}},
+            'env': {'type': 'constant'}})
+        images.append(np.array(mi.render(scene, spp=2, seed=3)))
+    assert images[0].mean() > 0.1
+    np.testing.assert_allclose(images[0], images[1], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize('wrapper', ['moment', 'aov'])
+def test_nested_in_moment_or_aov_the_footprint_scale_is_the_same(wrapper):
+    """Mitsuba's moment and aov integrators call pbrt_path's sample() with their own camera rays,
+    whose differentials Mitsuba's SamplingIntegrator has already scaled by 1/√spp: pbrt_path
+    applies the rest of its spp scale, so the footprints — and a trilinear texture's image — are
+    those of pbrt_path rendering alone (found in a user trial: nested, the footprint was 1/spp
+    instead of max(1/8, 1/√spp): 0.06 apart at 64 spp). Same random numbers: float32 rounding
+    (atol 1e-5); the images differ at spp_scale 1/64, so the comparison can fail."""
+    def scene(integrator, spp_scale='pbrt'):
+        return mi.load_dict({
+            'type': 'scene', 'integrator': integrator,
+            'sensor': {'type': 'perspective', 'fov': 50,
+                       'to_world': T().look_at([0, -1.2, 1.0], [0, 0.3, 0], [0, 0, 1]),
+                       'film': {'type': 'hdrfilm', 'width': 24, 'height': 16,
+                                'rfilter': {'type': 'box'}},
+                       'sampler': {'type': 'independent', 'sample_count': 64}},
+            'plane': {'type': 'rectangle', 'to_world': T().scale(3),
+                      'emitter': {'type': 'area', 'radiance': {
+                          'type': 'pbrt_imagemap', 'filename': 'scenes/textures/checker.png',
+                          'filter': 'trilinear', 'uscale': 4, 'vscale': 4}}}})
+
+    def pbrt_path(**kw):
+        return {'type': 'pbrt_path', 'max_depth': 1, **kw}
+
+    nested = {'type': 'moment', 'integrator': pbrt_path()} if wrapper == 'moment' else \
+        {'type': 'aov', 'aovs': 'dd.y:depth', 'integrator': pbrt_path()}
+    alone = np.array(mi.render(scene(pbrt_path()), seed=1))[..., :3]
+    wrapped = scene(nested)
+    inside = np.array(mi.render(wrapped, seed=1))[..., :3]
+    if wrapper == 'aov':            # the nested integrator's own channels, integrator.R, G, B
+        bitmap = wrapped.sensors()[0].film().bitmap()
+        names = [f.name for f in bitmap.struct_()]
+        first = names.index('integrator.R')
+        inside = np.array(bitmap)[..., first:first + 3]
+    finer = np.array(mi.render(scene(pbrt_path(spp_scale=1 / 64)), seed=1))[..., :3]
+    assert np.abs(alone - finer).max() > 1e-2
+    np.testing.assert_allclose(inside, alone, rtol=0, atol=1e-5)

@@ -488,10 +488,13 @@ def test_partials_after_a_curved_mirror_match_finite_differences_of_traced_rays(
         0.0, 0.5, mi.Point2f(xs.ravel().astype(np.float32), ys.ravel().astype(np.float32)),
         mi.Point2f(0.5, 0.5))
     o, d, d_x, d_y = (np.array(v, np.float64).T for v in (ray.o, ray.d, ray.d_x, ray.d_y))
+    # rays not drawn by pbrt_path's sample_rays come as Mitsuba's SamplingIntegrator passes
+    # them, scaled by 1/√spp (here 4: 1/2); pbrt_path scales them the rest of the way
+    ray.scale_differential(0.5)
     out = []
     for which in (0, 1):
         integrator = mi.load_dict({'type': 'pbrt_path', 'spp_scale': eps, 'max_depth': 4})
-        sampler = mi.load_dict({'type': 'independent'})
+        sampler = mi.load_dict({'type': 'independent', 'sample_count': 4})
         sampler.seed(7, n * n)
         probe_scene = scene(which)          # alive until its lazy result is evaluated
         value = integrator.sample(dr.ADMode.Primal, probe_scene, sampler, ray, None, None,
