@@ -400,11 +400,8 @@ class MIPMap:
         lookup = self.point if kind == 'point' else self.bilinear
         if not self.has_pyramid:
             return lookup(0, st, active)
-        last = len(self.sizes) - 1
+        last = len(self.sizes) - 1      # (a 1×1 image too: level 0 is its top)
         level = self.whole_level_of(width)
-        if last == 0:                   # a 1×1 image: level 0 is the top (black wrap: its texel)
-            top = self._top_lanes(level, last)
-            return self._with_top(top, active, lookup(0, st, active & ~top))
         top = self._top_lanes(level, last)
         ilevel = mi.UInt32(dr.clip(level, 0, last))
         value = lookup(ilevel, st, active & ~top)

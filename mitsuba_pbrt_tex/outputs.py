@@ -111,8 +111,11 @@ def written_by_us(path: str) -> bool:
     """Does the PNG at ``path`` carry :func:`write_png`'s mark (a tEXt chunk before the image
     data)?"""
     key, value = _GENERATOR
-    with open(path, 'rb') as f:
-        head = f.read(1 << 16)
+    try:
+        with open(path, 'rb') as f:
+            head = f.read(1 << 16)
+    except OSError:                     # unreadable: not known to be ours
+        return False
     # (Mitsuba 3.9 writes the value in quotes)
     return head.startswith(b'\x89PNG') and re.search(
         b'tEXt' + key.encode() + b'\0"?' + value.encode(), head) is not None

@@ -45,10 +45,14 @@ def _type_name(props: mi.Properties, name: str) -> str:
     return _TYPE_NAMES.get(t, t.lower())
 
 
+#: the type names that take "an" (``an integer``, ``an rgb``); every other takes "a"
+_AN = ('integer', 'rgb')
+
+
 def _a_type(props: mi.Properties, name: str) -> str:
     """``a float``, ``an integer``, ``an rgb`` … for error messages."""
     kind = _type_name(props, name)
-    return f'{"an" if kind[0] in "aeiour" else "a"} {kind}'
+    return f'{"an" if kind in _AN else "a"} {kind}'
 
 
 def _value_text(props: mi.Properties, name: str) -> str:

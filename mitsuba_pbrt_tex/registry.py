@@ -22,6 +22,7 @@ import mitsuba as mi
 
 from . import variants
 from .params import PluginError
+from .variants import UnsupportedVariantError
 
 TEXTURES = (
     'pbrt_constant', 'pbrt_scale', 'pbrt_mix', 'pbrt_directionmix', 'pbrt_bilerp', 'pbrt_uv',
@@ -57,10 +58,10 @@ def variant_class(impl: type, base: type) -> type:
                 precheck(props)
             base.__init__(self, props)
             self.setup(props)
-        except PluginError as e:
+        except (PluginError, UnsupportedVariantError) as e:
             # raised afresh here: Mitsuba's parser quotes the traceback of what a Python plugin
             # raises, and the frames inside our plugin say nothing the message does not
-            raise PluginError(str(e)) from None
+            raise type(e)(str(e)) from None
 
     namespace['__init__'] = __init__
     namespace['_pbrt_impl'] = impl

@@ -177,7 +177,7 @@ def _chain(e: BaseException) -> list:
     out = []
     while e is not None and e not in out:
         out.append(e)
-        e = e.__cause__ or e.__context__
+        e = e.__cause__ or (None if e.__suppress_context__ else e.__context__)
     return out
 
 

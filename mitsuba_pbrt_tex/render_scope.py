@@ -59,6 +59,9 @@ class RenderScope:
     positions: object = None
     #: Gaussian film: where each sample counts — the pixel its first hit decoded to
     counted: object = None
+    #: the JIT variables of the camera rays ``sample_rays`` returned: ``sample()`` given those
+    #: rays knows them for its own (one pixel wide, this render's)
+    rays: tuple = ()
 
     def count_at_decoded(self, pixel, ok):
         """Record ``pixel`` (crop coordinates; ``ok`` per lane) as where each sample counts —

@@ -270,7 +270,12 @@ class PbrtTexture:
 
 def check_finite_update(plugin: str, name: str, value, what: str = '') -> None:
     """A value set through ``mi.traverse`` must be finite, as at construction (a NaN or inf
-    parameter would put NaN or inf in every image): else an error naming the fix."""
+    parameter would put NaN or inf in every image): else an error naming the fix (the value
+    stays set until a finite one replaces it). Skipped, as the texels' checks are, for values
+    with gradients (an optimiser's step: reading them back would cost a synchronisation per
+    step) and while ``dr.freeze`` records (which cannot read values back)."""
+    if dr.grad_enabled(value) or dr.flag(dr.JitFlag.FreezingScope):
+        return
     v = dr.detach(value)
     if not bool(dr.all(dr.isfinite(v), axis=None)):
         raise PluginError(f'{plugin}: parameter "{name}": value {_short(v)}{what} set through '

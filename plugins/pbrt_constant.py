@@ -37,7 +37,8 @@ class Plugin(PbrtTexture):
         cb.put('value', self.value, mi.ParamFlags.Differentiable)
 
     def on_parameters_changed(self, keys):
-        check_finite_update(self.NAME, 'value', self.value)
+        if not keys or 'value' in keys:
+            check_finite_update(self.NAME, 'value', self.value)
 
     def to_string(self):
         return f'{self.NAME}[value={self.value}]'

@@ -25,16 +25,17 @@ class Plugin(PbrtTexture):
     def configure(self, p):
         self.nested_texture(p, 'tex1', 0.0)
         self.nested_texture(p, 'tex2', 1.0)
-        d = p.vector('dir', (0, 1, 0))
+        d = [float(c) for c in p.vector('dir', (0, 1, 0))]
         to_world = p.transform('to_world', invertible=True)
-        if to_world is not None:
-            d = to_world @ d
+        if to_world is not None:        # a direction: the 3×3 part, in float64
+            m = to_world.matrix
+            d = [sum(float(m[i][j]) * d[j] for j in range(3)) for i in range(3)]
         # normalised in float64: float32's squared norm is 0 for subnormal vectors (1e-40,
         # whose direction is well defined) and inf beyond ~1e19
-        d = [float(c) for c in d]
         norm = math.sqrt(sum(c * c for c in d))
-        if not norm > 0:
-            raise p.error('dir', 'must be a non-zero vector')
+        if not 0 < norm < math.inf:
+            raise p.error('dir', f'must be a non-zero vector{" after to_world" if to_world else ""}'
+                                 f' within float range, got {tuple(d)}')
         self.dir = mi.ScalarVector3f(*(c / norm for c in d))
         self.describe('dir', list(self.dir))
 

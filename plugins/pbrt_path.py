@@ -96,6 +96,11 @@ def bsdf_queries(bsdf, ctx, si, wo, active_em, sample1, sample2, active):
     return dr.dispatch(bsdf, both, si, wo, active_em, sample1, sample2, active=active)
 
 
+def _ray_ids(ray) -> tuple:
+    """The JIT variables a ray is made of (what tells this integrator's rays from others')."""
+    return tuple(dr.detail.collect_indices(ray))
+
+
 def _as_emitter_sampled(si, sampled):
     """``si`` without its footprint in lanes ``sampled``: where emitter sampling also reaches
     the emitter a ray hit (its MIS weight is below 1), the emitter is evaluated as emitter
@@ -287,6 +292,7 @@ class Plugin:
                 scope.sensor.film().rfilter().class_name() == 'BoxFilter':
             ray = pixel.inset_camera_rays(scope.sensor, ray, pos)
         scope.positions = pos         # box filter: the sample's pixel; Gaussian: its centre
+        scope.rays = _ray_ids(ray)
         self._handover = scope
         return ray, weight, pos
 
@@ -318,9 +324,10 @@ class Plugin:
         # literal propagation prunes derivative code).
         optimize = dr.flag(dr.JitFlag.OptimizeLoops) and mode != dr.ADMode.Primal
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, optimize):
-            scope = self._handover or RenderScope(scene.sensors()[0])
-            inputs = self.trace_inputs(scene, sampler, scope.sensor,
-                                       own_rays=self._handover is not None)
+            # the rays of this integrator's sample_rays, or another's (moment, aov, a user's)
+            own = self._handover is not None and _ray_ids(ray) == self._handover.rays
+            scope = self._handover if own else RenderScope(scene.sensors()[0])
+            inputs = self.trace_inputs(scene, sampler, scope.sensor, own_rays=own)
             pixels = inputs.needs.differentials and self.pixel_sensor(scope.sensor) is not None
             if pixels and scope.pixels is None and \
                     scope.sensor.film().rfilter().class_name() != 'BoxFilter':

@@ -239,6 +239,23 @@ def test_directionmix_direction_of_any_nonzero_length(length):
     np.testing.assert_allclose(got, 0.2 + (1 - amount) * 0.6, rtol=1e-6)
 
 
+@pytest.mark.parametrize('d, to_world', [((3e38, 3e38, 0), ('rotate', 45)),
+                                         ((0, 1e-44, 0), ('scale', 1e-3)),
+                                         ((0, 3e37, 0), ('scale', 100))])
+def test_directionmix_transforms_dir_without_overflow(d, to_world):
+    """dir through to_world in float64 (found in a review: in float32, (3e38, 3e38, 0) rotated
+    by 45° became (0, nan, 0) and was accepted; (0, 1e-44, 0) scaled by 1e-3 was refused as a
+    zero vector). Every case points along +y: with the normal along +y the value is tex1's."""
+    kind, amount = to_world
+    T = mi.ScalarTransform4f
+    tw = T().rotate([0, 0, 1], amount) if kind == 'rotate' else T().scale(amount)
+    t = mi.load_dict({'type': 'pbrt_directionmix', 'tex1': 0.2, 'tex2': 0.8,
+                      'dir': mi.ScalarVector3f(*d), 'to_world': tw})
+    si = make_si([[0.5, 0.5]])
+    si.n = mi.Normal3f(0, 1, 0)
+    np.testing.assert_allclose(A(t.eval_1(si)), [0.2], rtol=1e-6)
+
+
 def test_uv_texture_is_finite_and_exact_at_bad_uv():
     t = mi.load_dict({'type': 'pbrt_uv'})
     uv = np.array(BAD_UV)
