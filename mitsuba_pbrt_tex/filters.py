@@ -60,23 +60,26 @@ class TextureFilter:
             return mip.trilinear(tc.st, width, active)
         return mip.filter_single_level(self.kind, tc.st, width, active)
 
-    def gradient(self, pyramid: Pyramid, tc, active):
-        """(value, d value/ds, d value/dt) of the luminance (or single channel)."""
+    def gradient(self, pyramid: Pyramid, tc, active, per_channel: bool = False):
+        """(value, d value/ds, d value/dt) of the luminance (or single channel); with
+        ``per_channel``, of each channel (Color3f for RGB)."""
         mip = MIPMap(pyramid, self.wrap)
         if self.kind == 'point':
             v = mip.filter_single_level('point', tc.st, footprint_width(tc, 1.0), active)
-            return _lum(v), mi.Float(0), mi.Float(0)
+            v = v if per_channel else _lum(v)
+            return v, dr.zeros(type(v)), dr.zeros(type(v))
         if not mip.has_pyramid:
-            return mip.bilinear_gradient(0, tc.st, active)
+            return mip.bilinear_gradient(0, tc.st, active, per_channel)
         last = len(mip.sizes) - 1
         level = dr.clip(mip.level_of(footprint_width(tc, self.width_convention)), 0, last)
         l0 = dr.floor(level)
         il0 = mi.UInt32(l0)
-        g0 = mip.bilinear_gradient(il0, tc.st, active)
+        g0 = mip.bilinear_gradient(il0, tc.st, active, per_channel)
         if self.kind == 'bilinear':
             return g0
         frac = level - l0
-        g1 = mip.bilinear_gradient(dr.minimum(il0 + 1, last), tc.st, active & (frac > 0))
+        g1 = mip.bilinear_gradient(dr.minimum(il0 + 1, last), tc.st, active & (frac > 0),
+                                   per_channel)
         return tuple(dr.lerp(a, b, frac) for a, b in zip(g0, g1))
 
 

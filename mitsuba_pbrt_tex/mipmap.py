@@ -341,10 +341,12 @@ class MIPMap:
             out = v * weight if out is None else dr.fma(v, weight, out)
         return out
 
-    def bilinear_gradient(self, level, st, active):
-        """(f, df/ds, df/dt) of the bilinear reconstruction of the luminance (or channel)."""
+    def bilinear_gradient(self, level, st, active, per_channel: bool = False):
+        """(f, df/ds, df/dt) of the bilinear reconstruction of the luminance (or channel);
+        with ``per_channel``, of each channel."""
         texels, wx, wy, (w, h) = self.corners(level, st, active)
-        f00, f10, f01, f11 = (mi.luminance(v) if self.channels == 3 else v for v in texels)
+        f00, f10, f01, f11 = (mi.luminance(v) if self.channels == 3 and not per_channel else v
+                              for v in texels)
         f = (f00 * wx[0] + f10 * wx[1]) * wy[0] + (f01 * wx[0] + f11 * wx[1]) * wy[1]
         dfdx = wy[0] * (f10 - f00) + wy[1] * (f11 - f01)
         dfdy = wx[0] * (f01 - f00) + wx[1] * (f11 - f10)

@@ -224,6 +224,12 @@ class PbrtTexture:
     def is_spatially_varying(self) -> bool:
         return True
 
+    def max(self):
+        """Not implemented, as for Mitsuba's own textures (``bitmap``, ``checkerboard``): an error
+        saying so, where the unbound method was a raw "pure virtual function" error."""
+        raise RuntimeError(f'{self.NAME}: max() is not implemented (nor is it for Mitsuba\'s '
+                           f'bitmap or checkerboard)')
+
     def sample_spectrum(self, si, sample, active=True):
         """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as
         Mitsuba's ``bitmap`` — what light tracing (``ptracer``) and an emitter's ``sample_ray``

@@ -362,13 +362,18 @@ class Plugin(PbrtTexture):
     def eval_1_grad(self, si, active=True):
         active = mi.Bool(active)
         tc = self.mapping.map(self.context(si))
-        f, dfds, dfdt = self.filter.gradient(self._state()[0], tc, active)
+        # inverted RGB: eval_1 is the luminance of max(0, 1 - scale·rgb) channel by channel, so
+        # each channel's slope counts where that channel is not clipped
+        per_channel = self.invert and self.channels == 3
+        f, dfds, dfdt = self.filter.gradient(self._state()[0], tc, active, per_channel)
         jac = self.mapping.map(TextureEvalContext.uv_jacobian(si))
         dfdu = (dfds * jac.dsdx + dfdt * jac.dtdx) * self.scale
         dfdv = (dfds * jac.dsdy + dfdt * jac.dtdy) * self.scale
         if self.invert:
             live = 1 - f * self.scale > 0
             dfdu, dfdv = dr.select(live, -dfdu, 0), dr.select(live, -dfdv, 0)
+        if per_channel:
+            dfdu, dfdv = mi.luminance(dfdu), mi.luminance(dfdv)
         return finite_gradient(mi.Vector2f(dfdu, dfdv))
 
     # ------------------------------------------------------------------ Mitsuba interface
@@ -379,11 +384,12 @@ class Plugin(PbrtTexture):
     def mean(self):
         texels = sanitized(self.data.array)     # as the pyramid holds them (NaN → 0, ±1e38)
         if self.channels == 3:
-            texels = mi.luminance(dr.gather(mi.Color3f, texels,
-                                            dr.arange(mi.UInt32, dr.width(texels) // 3)))
+            texels = dr.gather(mi.Color3f, texels, dr.arange(mi.UInt32, dr.width(texels) // 3))
         values = texels * self.scale
-        if self.invert:
+        if self.invert:                          # channel by channel, as lookups invert
             values = dr.maximum(0, 1 - values)
+        if self.channels == 3:
+            values = mi.luminance(values)
         # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
         # (3.4e38) must not overflow the sum of up to 2^40 texels
         return dr.mean(values * 2.0**-40) * 2.0**40

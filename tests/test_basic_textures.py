@@ -156,3 +156,16 @@ def test_errors_name_plugin_parameter_and_choices():
         ours = [x for x in str(e.value).splitlines() if x.strip().startswith('File "') and
                 ('mitsuba_pbrt_tex/' in x or '/plugins/' in x) and 'registry.py' not in x]
         assert not ours, str(e.value)
+
+
+def test_max_is_not_implemented_as_for_mitsubas_textures():
+    """Mitsuba's bitmap and checkerboard raise "Texture::max(): not implemented!"; every pbrt_*
+    texture says the same in its own name, where it raised nanobind's raw "tried to call a pure
+    virtual function" (found in a user trial)."""
+    from plugin_cases import CASES
+    with pytest.raises(RuntimeError, match='not implemented'):
+        mi.load_dict({'type': 'checkerboard'}).max()
+    for name, (params, _) in CASES.items():
+        with pytest.raises(RuntimeError) as e:
+            mi.load_dict({'type': name, **params}).max()
+        assert f'{name}: max() is not implemented' in str(e.value), str(e.value)

@@ -1185,14 +1185,18 @@ def test_black_wrap_point_lookups_outside_are_zero_and_the_top_level_is_the_mean
                                    np.tile(img.mean((0, 1)), (50, 1)), atol=2e-6)
 
 
-def test_eval_1_grad_with_invert_matches_finite_differences(rng):
+@pytest.mark.parametrize('channels', [1, 3])
+def test_eval_1_grad_with_invert_matches_finite_differences(channels, rng):
     """``invert`` (1 - scale·v, clamped at 0) makes ``eval_1_grad`` read the value: its
-    derivative is -scale·grad where 1 - scale·v > 0 and 0 where clamped. With scale 2 and texels
-    in [0, 1] both cases occur; lookups within 0.02 of the clamp or 0.03 texel of a texel-centre
-    line are excluded. Central differences, h = 1e-4 in uv (0.0016 texel): rtol 1e-2, atol 2e-3
-    as in the footprint test above."""
+    derivative is -scale·grad where 1 - scale·v > 0 and 0 where clamped — for RGB channel by
+    channel, as eval_1 is the luminance of the inverted channels (found in a user trial: the
+    clamp was decided from the luminance, (0.06, -0.55) against finite differences of
+    (-0.31, -0.98) where only red clipped). With scale 2 and texels in [0, 1] all cases occur;
+    lookups within 0.02 of a clamp or 0.03 texel of a texel-centre line are excluded. Central
+    differences, h = 1e-4 in uv (0.0016 texel): rtol 1e-2, atol 2e-3 as in the footprint test
+    above."""
     res = 16
-    img = rng.random((res, res, 1))
+    img = rng.random((res, res, channels))
     tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img.astype(np.float32)),
                         'filter': 'bilinear', 'scale': 2.0, 'invert': True})
     n = 400
@@ -1204,13 +1208,13 @@ def test_eval_1_grad_with_invert_matches_finite_differences(rng):
 
     fd = np.stack([(f([h, 0]) - f([-h, 0])) / (2 * h), (f([0, h]) - f([0, -h])) / (2 * h)], 1)
     got = A(tex.eval_1_grad(make_si(uv)))
-    v = ref.bilinear(img, uv[:, 0], uv[:, 1], 'repeat')[:, 0]
-    ok = np.abs(1 - 2 * v) > 0.02
+    v = ref.bilinear(img, uv[:, 0], uv[:, 1], 'repeat').reshape(n, channels)
+    ok = (np.abs(1 - 2 * v) > 0.02).all(1)
     for c in range(2):
         p = uv[:, c] * res - 0.5
         ok &= np.abs(p - np.round(p)) > 0.03
-    live = (1 - 2 * v > 0) & ok
-    assert live.sum() > 50 and (ok & ~live).sum() > 50
+    live = (1 - 2 * v > 0).all(1) & ok
+    assert live.sum() > (50 if channels == 1 else 10) and (ok & ~live).sum() > 50
     np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
 
 
@@ -1328,3 +1332,18 @@ def test_pbrt_v4_spelling_EWA_is_ewa(rng):
     np.testing.assert_array_equal(got[0], got[1])
     with pytest.raises(RuntimeError, match='unknown value "Ewa"'):
         mi.load_dict({'type': 'pbrt_imagemap', 'filter': 'Ewa', 'data': data})
+
+
+@pytest.mark.parametrize('channels', [1, 3])
+def test_mean_with_invert_is_the_mean_of_the_inverted_texels(channels, rng):
+    """mean() (a plastic's weight, an emitter's power) of an inverted image is the average over
+    texels of what lookups return there: the luminance of max(0, 1 - scale·v) channel by
+    channel (found in a user trial: the luminance was inverted instead — 0.4928 for 0.5204 on a
+    2×2 image). numpy reference with Mitsuba's luminance weights; float32 sums: rtol 1e-5."""
+    img = rng.uniform(0, 1.5, (8, 8, channels)).astype(np.float32)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'scale': 1.5,
+                        'invert': True})
+    inverted = np.maximum(0, 1 - 1.5 * img.astype(np.float64))
+    want = inverted[..., 0] if channels == 1 else \
+        inverted @ np.array([0.212671, 0.715160, 0.072169])
+    assert A(tex.mean())[0] == pytest.approx(want.mean(), rel=1e-5)
