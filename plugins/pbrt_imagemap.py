@@ -224,6 +224,7 @@ class Plugin(PbrtTexture):
             self._warn_nonfinite(img.nonfinite)
         self._tables = None
         self._rebuild(levels=self.filter_name in ('trilinear', 'ewa', 'box'))
+        self._mean = self._texel_mean()
 
     def _call(self, fn, param):
         try:
@@ -382,6 +383,12 @@ class Plugin(PbrtTexture):
         return int(self.data.shape[2])
 
     def mean(self):
+        """The texels' mean, computed where they (or the scale) change: a reduction over the
+        image cannot run where Mitsuba or a user asks for it inside a symbolic call or loop (a
+        user's BSDF, dr.dispatch: it aborted the process, found in a user trial)."""
+        return self._mean
+
+    def _texel_mean(self):
         texels = sanitized(self.data.array)     # as the pyramid holds them (NaN → 0, ±1e38)
         if self.channels == 3:
             texels = dr.gather(mi.Color3f, texels, dr.arange(mi.UInt32, dr.width(texels) // 3))
@@ -392,7 +399,9 @@ class Plugin(PbrtTexture):
             values = mi.luminance(values)
         # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
         # (3.4e38) must not overflow the sum of up to 2^40 texels
-        return dr.mean(values * 2.0**-40) * 2.0**40
+        mean = dr.mean(values * 2.0**-40) * 2.0**40
+        dr.eval(mean)
+        return mean
 
     def resolution(self):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
@@ -418,6 +427,8 @@ class Plugin(PbrtTexture):
         if not keys or {'data', 'scale', 'to_uv'} & set(keys):
             self._sampler = None            # rebuilt when an emitter next asks
         if keys and 'data' not in keys:
+            if 'scale' in keys:
+                self._mean = self._texel_mean()
             return
         t = self.data
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
@@ -429,6 +440,7 @@ class Plugin(PbrtTexture):
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
         # lazily during the render (under pbrt_path) would miss it.
         self._rebuild(self._levels or dr.grad_enabled(self.data))
+        self._mean = self._texel_mean()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
 
     def _check_new_texels(self):

@@ -1347,3 +1347,32 @@ def test_mean_with_invert_is_the_mean_of_the_inverted_texels(channels, rng):
     want = inverted[..., 0] if channels == 1 else \
         inverted @ np.array([0.212671, 0.715160, 0.072169])
     assert A(tex.mean())[0] == pytest.approx(want.mean(), rel=1e-5)
+
+
+@pytest.mark.parametrize('context', ['dispatch', 'loop'])
+def test_mean_inside_symbolic_calls_and_loops(context, rng):
+    """mean() asked inside a symbolic call (a user's BSDF, dr.dispatch) or loop: the mean is
+    computed where the texels change, as bitmap keeps its own — a reduction over the image there
+    aborted the process inside Dr.Jit (found in a user trial). The value is the texels' mean
+    (numpy; float32 sums: rtol 1e-5), also after params.update() of data and scale."""
+    img = rng.random((8, 8, 3)).astype(np.float32)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img)})
+    other = mi.load_dict({'type': 'pbrt_constant', 'value': 0.25})
+    lum = np.array([0.212671, 0.715160, 0.072169])
+
+    def read():
+        x = dr.arange(mi.Float, 8)
+        if context == 'dispatch':
+            ptr = dr.gather(mi.TexturePtr, mi.TexturePtr([tex, other]),
+                            dr.arange(mi.UInt32, 8) % 2)
+            return A(dr.dispatch(ptr, lambda self, x: x * 0 + self.mean(), x))[0]
+        _, r = dr.while_loop((mi.UInt32(0), x * 0), lambda i, r: i < 1,
+                             lambda i, r: (i + 1, r + tex.mean()))
+        return A(r)[0]
+
+    assert read() == pytest.approx((img.astype(np.float64) @ lum).mean(), rel=1e-5)
+    p = mi.traverse(tex)
+    p['data'] = mi.TensorXf(img * 0.5)
+    p['scale'] = mi.Float(3.0)
+    p.update()
+    assert read() == pytest.approx(1.5 * (img.astype(np.float64) @ lum).mean(), rel=1e-5)
