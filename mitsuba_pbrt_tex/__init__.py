@@ -11,7 +11,34 @@ Typical use::
 Importing the package first matters only for the LLVM variants: see :mod:`mitsuba_pbrt_tex._llvm`.
 """
 
+import importlib.util as _importlib_util
+import os as _os
+import sys as _sys
+
 from ._llvm import bootstrap as _bootstrap_llvm
+
+
+def _map_checkout_folders() -> None:
+    """In a source checkout imported as it is — Python started in the repository, whether or
+    not a copy is installed elsewhere — the checkout's ``plugins/`` and ``scenes/`` folders are
+    the ``plugins`` and ``scenes`` subpackages, as an install maps them (pyproject's
+    package-dir). Without this, ``register()`` there failed to find the plugins."""
+    root = _os.path.dirname(_os.path.dirname(_os.path.abspath(__file__)))
+    for name in ('plugins', 'scenes'):
+        full = f'{__name__}.{name}'
+        folder = _os.path.join(root, name)
+        init = _os.path.join(folder, '__init__.py')
+        if full in _sys.modules or _importlib_util.find_spec(full) is not None or \
+                not _os.path.isfile(init):
+            continue
+        spec = _importlib_util.spec_from_file_location(full, init,
+                                                       submodule_search_locations=[folder])
+        module = _importlib_util.module_from_spec(spec)
+        _sys.modules[full] = module
+        spec.loader.exec_module(module)
+
+
+_map_checkout_folders()
 
 LIBLLVM_PATH = _bootstrap_llvm()
 
