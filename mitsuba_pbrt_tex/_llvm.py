@@ -25,6 +25,7 @@ import glob
 import os
 import platform
 import re
+import warnings
 
 MIN_MAJOR = 17
 ENV_VAR = 'DRJIT_LIBLLVM_PATH'
@@ -115,10 +116,31 @@ def _guard_set_variant() -> None:
     mitsuba.set_variant = set_variant
 
 
+def _user_path_problem(path: str) -> str | None:
+    """What is wrong with a DRJIT_LIBLLVM_PATH the user set, if we can tell: missing, not a
+    file, or a libLLVM whose name says it is older than MIN_MAJOR."""
+    if not os.path.exists(path):
+        return 'does not exist'
+    if not os.path.isfile(path):
+        return 'is not a file'
+    major = llvm_major(os.path.basename(os.path.realpath(path))) or \
+        llvm_major(os.path.basename(path))
+    if major is not None and major < MIN_MAJOR:
+        return f'is LLVM {major}, older than {MIN_MAJOR} (Dr.Jit\'s LLVM backend aborts with it)'
+    return None
+
+
 def bootstrap() -> str | None:
-    """Export DRJIT_LIBLLVM_PATH if needed; returns the path in use (or None)."""
+    """Export DRJIT_LIBLLVM_PATH if needed; returns the path in use (or None). A path the user
+    set is left alone, with a warning where it cannot work."""
     current = os.environ.get(ENV_VAR)
     if current:
+        problem = _user_path_problem(current)
+        if problem:
+            found = find_libllvm()
+            warnings.warn(f'mitsuba_pbrt_tex: {ENV_VAR}={current} {problem}; the LLVM variants '
+                          f'will fail. ' + (f'Unset it to use {found}, found on this machine.'
+                                            if found else INSTALL_HINT), stacklevel=2)
         return current
     path = find_libllvm()
     if path is not None:

@@ -113,8 +113,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def parser() -> argparse.ArgumentParser:
-    ap = _Parser(prog='python -m mitsuba_pbrt_tex',
-                                 description="PBRT's texture system as Mitsuba 3 plugins.")
+    # the console script's own name when started as it, else the module form
+    script = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ''
+    ap = _Parser(prog=script if script == 'mitsuba-pbrt-tex' else 'python -m mitsuba_pbrt_tex',
+                 description="PBRT's texture system as Mitsuba 3 plugins.")
     sub = ap.add_subparsers(dest='command', required=True)
 
     r = sub.add_parser('render', help='render a scene to EXR (+ tone-mapped PNG)')

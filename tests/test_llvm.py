@@ -70,3 +70,20 @@ def test_found_library_is_exported(tmp_path):
     code = 'import os, mitsuba_pbrt_tex; print(os.environ.get("DRJIT_LIBLLVM_PATH"))'
     r = _run(code, {'MITSUBA_PBRT_TEX_LLVM_SEARCH': str(tmp_path)})
     assert r.stdout.strip() == want
+
+
+def test_user_setting_that_cannot_work_is_left_alone_with_a_warning(tmp_path):
+    """A DRJIT_LIBLLVM_PATH of the user's stays as set, but one that is missing, a folder or an
+    LLVM older than 17 gets a warning naming the problem and the usable library found (found in
+    an installation trial: a missing path led to 'no usable libLLVM on this machine' though
+    LLVM 19 was there, and LLVM 15 aborted the process)."""
+    good = _touch(tmp_path, 'libLLVM-19.so')
+    old = _touch(tmp_path, 'libLLVM-15.so')
+    code = 'import os, mitsuba_pbrt_tex; print(os.environ["DRJIT_LIBLLVM_PATH"])'
+    for value, words in ((str(tmp_path / 'missing.so'), 'does not exist'),
+                         (str(tmp_path), 'is not a file'), (old, 'is LLVM 15, older than 17')):
+        r = _run(code, {'DRJIT_LIBLLVM_PATH': value, 'MITSUBA_PBRT_TEX_LLVM_SEARCH': str(tmp_path)})
+        assert r.stdout.strip() == value
+        assert words in r.stderr and f'Unset it to use {good}' in r.stderr, r.stderr
+    r = _run(code, {'DRJIT_LIBLLVM_PATH': good})
+    assert r.stdout.strip() == good and 'Warning' not in r.stderr
