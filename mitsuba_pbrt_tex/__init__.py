@@ -19,18 +19,25 @@ from ._llvm import bootstrap as _bootstrap_llvm
 
 
 def _map_checkout_folders() -> None:
-    """In a source checkout imported as it is — Python started in the repository, whether or
-    not a copy is installed elsewhere — the checkout's ``plugins/`` and ``scenes/`` folders are
-    the ``plugins`` and ``scenes`` subpackages, as an install maps them (pyproject's
-    package-dir). Without this, ``register()`` there failed to find the plugins."""
+    """In a source checkout imported as it is — Python started in the repository — the
+    checkout's ``plugins/`` and ``scenes/`` folders are the ``plugins`` and ``scenes``
+    subpackages, as an install maps them (pyproject's package-dir), also where another copy is
+    installed (plainly, or editable from another checkout, whose import hook would answer with
+    its own folders). Without this, ``register()`` there failed to find the plugins."""
     root = _os.path.dirname(_os.path.dirname(_os.path.abspath(__file__)))
+    if not _os.path.isfile(_os.path.join(root, 'pyproject.toml')):
+        return                                          # an installed copy: its own layout
     for name in ('plugins', 'scenes'):
         full = f'{__name__}.{name}'
         folder = _os.path.join(root, name)
         init = _os.path.join(folder, '__init__.py')
-        if full in _sys.modules or _importlib_util.find_spec(full) is not None or \
-                not _os.path.isfile(init):
+        if full in _sys.modules or not _os.path.isfile(init):
             continue
+        found = _importlib_util.find_spec(full)
+        if found is not None and [_os.path.realpath(p) for p in
+                                  (found.submodule_search_locations or [])] == \
+                [_os.path.realpath(folder)]:
+            continue                                    # already this checkout's folder
         spec = _importlib_util.spec_from_file_location(full, init,
                                                        submodule_search_locations=[folder])
         module = _importlib_util.module_from_spec(spec)

@@ -119,10 +119,11 @@ def _guard_set_variant() -> None:
 def _user_path_problem(path: str) -> str | None:
     """What is wrong with a DRJIT_LIBLLVM_PATH the user set, if we can tell: missing, not a
     file, or a libLLVM whose name says it is older than MIN_MAJOR."""
-    if not os.path.exists(path):
-        return 'does not exist'
-    if not os.path.isfile(path):
-        return 'is not a file'
+    if os.sep in path:                  # a bare name is dlopen's to find on the library path
+        if not os.path.exists(path):
+            return 'does not exist'
+        if not os.path.isfile(path):
+            return 'is not a file'
     major = llvm_major(os.path.basename(os.path.realpath(path))) or \
         llvm_major(os.path.basename(path))
     if major is not None and major < MIN_MAJOR:

@@ -112,11 +112,16 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f'error: {message} (see: {self.prog} --help)\n')
 
 
+def program() -> str:
+    """How the user started us, for usage lines: the console script's own name when started
+    as it (``mitsuba-pbrt-tex``, ``.exe`` on Windows), else the module form."""
+    script = os.path.splitext(os.path.basename(sys.argv[0]))[0] if sys.argv and sys.argv[0] \
+        else ''
+    return script if script == 'mitsuba-pbrt-tex' else 'python -m mitsuba_pbrt_tex'
+
+
 def parser() -> argparse.ArgumentParser:
-    # the console script's own name when started as it, else the module form
-    script = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ''
-    ap = _Parser(prog=script if script == 'mitsuba-pbrt-tex' else 'python -m mitsuba_pbrt_tex',
-                 description="PBRT's texture system as Mitsuba 3 plugins.")
+    ap = _Parser(prog=program(), description="PBRT's texture system as Mitsuba 3 plugins.")
     sub = ap.add_subparsers(dest='command', required=True)
 
     r = sub.add_parser('render', help='render a scene to EXR (+ tone-mapped PNG)')

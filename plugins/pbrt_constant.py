@@ -7,6 +7,7 @@
 ``eval_1`` of an rgb value is its luminance (as for every pbrt_* texture and Mitsuba's ``bitmap``).
 """
 
+import drjit as dr
 import mitsuba as mi
 
 from mitsuba_pbrt_tex.texture import PbrtTexture, check_finite_update
@@ -29,6 +30,11 @@ class Plugin(PbrtTexture):
 
     def is_spatially_varying(self):
         return False
+
+    def max(self):
+        """The largest channel, as Mitsuba's ``srgb`` answers."""
+        return mi.Float(dr.max(self.value)) if isinstance(self.value, mi.Color3f) else \
+            mi.Float(self.value)
 
     def prepare_differentials(self):
         return False

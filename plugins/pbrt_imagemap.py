@@ -385,8 +385,10 @@ class Plugin(PbrtTexture):
     def mean(self):
         """The texels' mean, computed where they (or the scale) change: a reduction over the
         image cannot run where Mitsuba or a user asks for it inside a symbolic call or loop (a
-        user's BSDF, dr.dispatch: it aborted the process, found in a user trial)."""
-        return self._mean
+        user's BSDF, dr.dispatch: it aborted the process, found in a user trial). A copy: the
+        caller may change it in place. (With gradients on the texels or the scale it is in the
+        AD graph, as the pyramid is.)"""
+        return mi.Float(self._mean)
 
     def _texel_mean(self):
         texels = sanitized(self.data.array)     # as the pyramid holds them (NaN → 0, ±1e38)

@@ -87,3 +87,8 @@ def test_user_setting_that_cannot_work_is_left_alone_with_a_warning(tmp_path):
         assert words in r.stderr and f'Unset it to use {good}' in r.stderr, r.stderr
     r = _run(code, {'DRJIT_LIBLLVM_PATH': good})
     assert r.stdout.strip() == good and 'Warning' not in r.stderr
+    # a bare name is the dynamic loader's to find (the library path): not judged by existence
+    r = _run(code, {'DRJIT_LIBLLVM_PATH': 'libLLVM.so.19.1'})
+    assert r.stdout.strip() == 'libLLVM.so.19.1' and 'Warning' not in r.stderr
+    r = _run(code, {'DRJIT_LIBLLVM_PATH': 'libLLVM-15.so'})
+    assert 'is LLVM 15, older than 17' in r.stderr, r.stderr

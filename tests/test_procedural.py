@@ -629,7 +629,7 @@ def test_dots_mean_is_the_average_over_the_noise_period():
     """mean() (a plastic's sampling weight) of pbrt_dots: the texture's average over one period
     of its noise (256 × 256 cells), here a 2048² grid of lookups (64 per cell; the grid's own
     error for the dots' discs is ~0.8%: rtol 1.5%). Found in a user trial: "about half of the
-    cells hold a dot" made it 32% high (0.192 for 0.146); 39% of the cells do."""
+    cells hold a dot" made it 32% high (0.192 for 0.152); 39.4% of the cells do."""
     tex = mi.load_dict({'type': 'pbrt_dots', 'uscale': 256, 'vscale': 256,
                         'inside': 0.9, 'outside': 0.1})
     n, rows, total = 2048, 256, 0.0
@@ -640,3 +640,23 @@ def test_dots_mean_is_the_average_over_the_noise_period():
         si.uv = mi.Point2f(uu.ravel(), vv.ravel())
         total += float(np.array(tex.eval_1(si), np.float64).sum())
     assert float(A(tex.mean())[0]) == pytest.approx(total / n ** 2, rel=0.015)
+
+
+def test_dots_fraction_of_cells_with_a_dot_over_the_noise_period():
+    """pbrt_dots.DOT_FRACTION, the constant mean() uses, counted again: cells whose
+    Noise(cell + .5) (the numpy reference noise, at z = 0.5 as the texture asks) is positive,
+    over the 256 × 256 cells of the noise's period."""
+    from mitsuba_pbrt_tex.plugins import pbrt_dots
+    i, j = np.meshgrid(np.arange(256) + 0.5, np.arange(256) + 0.5)
+    values = rn.noise(i.ravel(), j.ravel(), np.full(i.size, 0.5))
+    assert pbrt_dots.DOT_FRACTION == np.count_nonzero(values > 0) / i.size
+
+
+def test_dots_mean_asked_first_inside_a_symbolic_call():
+    """mean() asked for the first time inside dr.dispatch (a user's BSDF): nothing is computed
+    there (a reduction counted at the first call aborted the process, found in a review)."""
+    tex = mi.load_dict({'type': 'pbrt_dots', 'inside': 0.9, 'outside': 0.1})
+    other = mi.load_dict({'type': 'pbrt_constant', 'value': 0.25})
+    ptr = dr.gather(mi.TexturePtr, mi.TexturePtr([tex, other]), dr.arange(mi.UInt32, 4) % 2)
+    got = A(dr.dispatch(ptr, lambda self, x: x * 0 + self.mean(), dr.arange(mi.Float, 4)))
+    np.testing.assert_allclose(got[::2], A(tex.mean())[0], rtol=1e-7)

@@ -73,7 +73,8 @@ def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench integrator',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} bench integrator',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--spp', type=int, default=16, help='samples per pixel of each render')
     ap.add_argument('--repeats', type=int, default=5,

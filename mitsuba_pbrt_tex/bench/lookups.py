@@ -218,7 +218,8 @@ def cache_lines_ewa(size, u, v, d0, d1, max_anisotropy):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench lookups',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} bench lookups',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--size', type=int, default=1024, help='texture resolution (square)')
     ap.add_argument('--count', type=int, default=1 << 20, help='lookups per batch')

@@ -136,7 +136,8 @@ def run(size: int = 2048, reloads: int = 5, kinds=('bitmap', 'bilinear', 'ewa'),
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench memory',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} bench memory',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--size', type=int, default=2048, help='image side in pixels (default 2048; '
                     '8192 is a 768 MiB image, with peaks near 3 GiB)')

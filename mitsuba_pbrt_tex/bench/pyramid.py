@@ -157,7 +157,8 @@ def run(lookups=300, seed=3, out=print):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench pyramid',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} bench pyramid',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--lookups', type=int, default=300,
                     help='random lookups per test image for the RMSE columns')

@@ -756,7 +756,8 @@ def charts(rows, out_dir):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex bench render',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} bench render',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--scenes', nargs='*', default=None,
                     help='subset of: ' + ', '.join(c.name for c in cases(work_dir=None)))

@@ -105,7 +105,8 @@ def _compose(path, left, right, left_title, right_title):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex demo horizon',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} demo horizon',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', default='renders', help='output folder (default renders)')
     ap.add_argument('--width', type=positive_int, default=480, help='image width (pixels)')

@@ -246,7 +246,8 @@ def plots(history, truth, finals, target_view, out_dir):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m mitsuba_pbrt_tex demo inverse',
+    from ..cli import program
+    ap = argparse.ArgumentParser(prog=f'{program()} demo inverse',
                                  description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', default='demo-out', help='output folder (default demo-out)')
     ap.add_argument('--iterations', type=positive_int, default=None,
