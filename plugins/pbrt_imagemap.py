@@ -224,7 +224,7 @@ class Plugin(PbrtTexture):
             self._warn_nonfinite(img.nonfinite)
         self._tables = None
         self._rebuild(levels=self.filter_name in ('trilinear', 'ewa', 'box'))
-        self._mean = self._texel_mean()
+        self._update_mean()
 
     def _call(self, fn, param):
         try:
@@ -390,6 +390,12 @@ class Plugin(PbrtTexture):
         AD graph, as the pyramid is.)"""
         return mi.Float(self._mean)
 
+    def _update_mean(self):
+        """:meth:`mean` for the current texels and scale; the reduction's temporaries go back,
+        as a large build's do."""
+        self._mean = self._texel_mean()
+        release_build_temporaries(self.pyramid)
+
     def _texel_mean(self):
         texels = sanitized(self.data.array)     # as the pyramid holds them (NaN → 0, ±1e38)
         if self.channels == 3:
@@ -430,7 +436,7 @@ class Plugin(PbrtTexture):
             self._sampler = None            # rebuilt when an emitter next asks
         if keys and 'data' not in keys:
             if 'scale' in keys:
-                self._mean = self._texel_mean()
+                self._update_mean()
             return
         t = self.data
         if len(t.shape) != 3 or t.shape[2] not in (1, 3) or min(t.shape[:2]) < 1:
@@ -442,7 +448,7 @@ class Plugin(PbrtTexture):
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
         # lazily during the render (under pbrt_path) would miss it.
         self._rebuild(self._levels or dr.grad_enabled(self.data))
-        self._mean = self._texel_mean()
+        self._update_mean()
         self.describe('resolution', f'{t.shape[1]}x{t.shape[0]}x{t.shape[2]}')
 
     def _check_new_texels(self):
