@@ -1090,6 +1090,22 @@ def test_textures_with_a_constant_channel_render_as_under_prb(texture):
     np.testing.assert_allclose(images[0], images[1], rtol=1e-5, atol=1e-6)
 
 
+def _textured_light_scene(integrator):
+    """A trilinear-textured area light seen from above at a slant, 24×16, 64 spp: its image
+    depends on the footprint's scale."""
+    return mi.load_dict({
+        'type': 'scene', 'integrator': integrator,
+        'sensor': {'type': 'perspective', 'fov': 50,
+                   'to_world': T().look_at([0, -1.2, 1.0], [0, 0.3, 0], [0, 0, 1]),
+                   'film': {'type': 'hdrfilm', 'width': 24, 'height': 16,
+                            'rfilter': {'type': 'box'}},
+                   'sampler': {'type': 'independent', 'sample_count': 64}},
+        'plane': {'type': 'rectangle', 'to_world': T().scale(3),
+                  'emitter': {'type': 'area', 'radiance': {
+                      'type': 'pbrt_imagemap', 'filename': 'scenes/textures/checker.png',
+                      'filter': 'trilinear', 'uscale': 4, 'vscale': 4}}}})
+
+
 @pytest.mark.parametrize('wrapper', ['moment', 'aov'])
 def test_nested_in_moment_or_aov_the_footprint_scale_is_the_same(wrapper):
     """Mitsuba's moment and aov integrators call pbrt_path's sample() with their own camera rays,
@@ -1098,18 +1114,7 @@ def test_nested_in_moment_or_aov_the_footprint_scale_is_the_same(wrapper):
     those of pbrt_path rendering alone (found in a user trial: nested, the footprint was 1/spp
     instead of max(1/8, 1/√spp): 0.06 apart at 64 spp). Same random numbers: float32 rounding
     (atol 1e-5); the images differ at spp_scale 1/64, so the comparison can fail."""
-    def scene(integrator, spp_scale='pbrt'):
-        return mi.load_dict({
-            'type': 'scene', 'integrator': integrator,
-            'sensor': {'type': 'perspective', 'fov': 50,
-                       'to_world': T().look_at([0, -1.2, 1.0], [0, 0.3, 0], [0, 0, 1]),
-                       'film': {'type': 'hdrfilm', 'width': 24, 'height': 16,
-                                'rfilter': {'type': 'box'}},
-                       'sampler': {'type': 'independent', 'sample_count': 64}},
-            'plane': {'type': 'rectangle', 'to_world': T().scale(3),
-                      'emitter': {'type': 'area', 'radiance': {
-                          'type': 'pbrt_imagemap', 'filename': 'scenes/textures/checker.png',
-                          'filter': 'trilinear', 'uscale': 4, 'vscale': 4}}}})
+    scene = _textured_light_scene
 
     def pbrt_path(**kw):
         return {'type': 'pbrt_path', 'max_depth': 1, **kw}
@@ -1137,18 +1142,7 @@ def test_rays_of_an_earlier_sample_rays_do_not_make_foreign_rays_its_own():
     decided whose rays they were). Same random numbers: atol 1e-6."""
     inner = mi.load_dict({'type': 'pbrt_path', 'max_depth': 1})
 
-    def scene(integrator):
-        return mi.load_dict({
-            'type': 'scene', 'integrator': integrator,
-            'sensor': {'type': 'perspective', 'fov': 50,
-                       'to_world': T().look_at([0, -1.2, 1.0], [0, 0.3, 0], [0, 0, 1]),
-                       'film': {'type': 'hdrfilm', 'width': 16, 'height': 12,
-                                'rfilter': {'type': 'box'}},
-                       'sampler': {'type': 'independent', 'sample_count': 64}},
-            'plane': {'type': 'rectangle', 'to_world': T().scale(3),
-                      'emitter': {'type': 'area', 'radiance': {
-                          'type': 'pbrt_imagemap', 'filename': 'scenes/textures/checker.png',
-                          'filter': 'trilinear', 'uscale': 4, 'vscale': 4}}}})
+    scene = _textured_light_scene
 
     wrapped = scene({'type': 'moment', 'integrator': inner})
     before = np.array(mi.render(wrapped, seed=1))
