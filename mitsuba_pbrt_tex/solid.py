@@ -38,8 +38,10 @@ class NoiseTexture(PbrtTexture):
                 self.octaves * math.log10(self.roughness) > math.log10(MAX_OCTAVE_WEIGHT):
             largest = MAX_OCTAVE_WEIGHT ** (1.0 / self.octaves)
             weight = self.octaves * math.log10(self.roughness)       # log10 of roughness^octaves
+            mantissa, exponent = 10 ** (weight - math.floor(weight)), math.floor(weight)
             raise p.error('roughness', f'{self.roughness:g} with {self.octaves} octaves weights '
-                                       f'the last octave by roughness^octaves = 1e+{weight:.0f}, '
+                                       f'the last octave by roughness^octaves = '
+                                       f'{mantissa:.3g}e+{exponent} (above 1e+30), '
                                        f'which overflows float32 sums; accepted for '
                                        f'{self.octaves} octaves: roughness <= {largest:.6g}')
         self.antialias = p.enum('aamode', 'clamp', NOISE_AAMODES) == 'clamp'

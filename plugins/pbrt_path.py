@@ -289,7 +289,9 @@ class Plugin:
         if scope.pixels is not None:
             ray, weight, pos = scope.pixels.rays(scope.sensor, ray, pos, sampler.sample_count())
         elif self.footprint_mode == 'pixel' and scope.sensor.class_name() in PIXEL_SENSORS and \
-                scope.sensor.film().rfilter().class_name() == 'BoxFilter':
+                scope.sensor.film().rfilter().class_name() == 'BoxFilter' and \
+                self.scene_needs(scene).differentials:
+            # (where no texture reads the footprint the rays stay prb's)
             ray = pixel.inset_camera_rays(scope.sensor, ray, pos)
         scope.positions = pos         # box filter: the sample's pixel; Gaussian: its centre
         scope.rays = _ray_ids(ray)
