@@ -151,7 +151,6 @@ def test_every_variant_a_process_switches_to_renders(order, tmp_path):
     ``pbrt_path``, ``pbrt_path`` inside Mitsuba's ``moment``, Mitsuba's ``ptracer`` and ``prb``
     in each. Before, ``pbrt_path`` took its base class from ``mitsuba.ad.integrators``, which
     stays bound to the first variant: in the second, scenes had no integrator."""
-    import sys
     script = tmp_path / 'switch.py'
     script.write_text(SWITCH_SCRIPT)
     out = subprocess.run([sys.executable, str(script), *order], capture_output=True, text=True,
@@ -163,9 +162,13 @@ def test_every_variant_a_process_switches_to_renders(order, tmp_path):
             variant, integrator, mean = line[line.index('llvm_ad_'):].split()
             means.setdefault((variant, integrator), []).append(float(mean))
     assert len(means) == 4 * len(set(order)), out.stdout
-    # a variant set again renders exactly what it rendered the first time (same seed)
-    for (variant, _), values in means.items():
-        assert len(values) == order.count(variant) and len(set(values)) == 1, means
+    # a variant set again renders what it rendered the first time (same seed): exactly, but for
+    # ptracer, whose splats are atomic adds in whatever order the threads reach them (means
+    # measured 2e-8 apart now and then, with Mitsuba's own textures too): rtol 1e-6 there
+    for (variant, integrator), values in means.items():
+        assert len(values) == order.count(variant), means
+        rtol = 1e-6 if integrator == 'ptracer' else 0
+        assert max(values) - min(values) <= rtol * abs(values[0]), means
 
 
 def test_every_bundled_scene_file_is_packaged():
