@@ -268,6 +268,7 @@ class SharedImage:
         self._level0: Pyramid | None = None       # level 0 alone, until a complete one exists
         self._lock = threading.Lock()
         self.slot = PyramidSlot()                 # what textures of this file read
+        self.texel_mean = None                    # their mean, found by the first texture
 
     def built(self, levels: bool) -> Pyramid | None:
         """The pyramid already built that serves a request (a complete one serves both)."""

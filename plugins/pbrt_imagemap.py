@@ -127,6 +127,25 @@ def integer_data_message(value) -> str:
             f'srgb_gamma=False))')
 
 
+def _luminance_mean(texels, channels: int, scale, invert: bool):
+    """Mean over the texels (flat, as the pyramid holds them: NaN → 0, ±1e38) of the luminance
+    (or channel) of ``scale``·texel, or with ``invert`` of max(0, 1 - scale·texel) channel by
+    channel, as lookups invert. Evaluated."""
+    texels = sanitized(texels)
+    if channels == 3:
+        texels = dr.gather(mi.Color3f, texels, dr.arange(mi.UInt32, dr.width(texels) // 3))
+    values = texels * scale
+    if invert:
+        values = dr.maximum(0, 1 - values)
+    if channels == 3:
+        values = mi.luminance(values)
+    # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
+    # (3.4e38) must not overflow the sum of up to 2^40 texels
+    mean = dr.mean(values * 2.0**-40) * 2.0**40
+    dr.eval(mean)
+    return mean
+
+
 class Plugin(PbrtTexture):
     NAME = 'pbrt_imagemap'
 
@@ -391,25 +410,20 @@ class Plugin(PbrtTexture):
         return mi.Float(self._mean)
 
     def _update_mean(self):
-        """:meth:`mean` for the current texels and scale; the reduction's temporaries go back,
-        as a large build's do."""
-        self._mean = self._texel_mean()
+        """:meth:`mean` for the current texels and scale. Without ``invert`` it is linear in the
+        scale: the texels' own mean, found once per file's texels (textures of one file share
+        it) or per ``data``, times the scale; with ``invert``, a mean of each texel's inverted
+        value. A reduction's temporaries go back, as a large build's do."""
+        if self.invert:
+            self._mean = _luminance_mean(self.data.array, self.channels, self.scale, True)
+        else:
+            cache = self._shared if self._shared is not None else self
+            if getattr(cache, 'texel_mean', None) is None:
+                cache.texel_mean = _luminance_mean(self.data.array, self.channels, 1.0, False)
+                release_build_temporaries(self.pyramid)
+            self._mean = cache.texel_mean * self.scale
+            return
         release_build_temporaries(self.pyramid)
-
-    def _texel_mean(self):
-        texels = sanitized(self.data.array)     # as the pyramid holds them (NaN → 0, ±1e38)
-        if self.channels == 3:
-            texels = dr.gather(mi.Color3f, texels, dr.arange(mi.UInt32, dr.width(texels) // 3))
-        values = texels * self.scale
-        if self.invert:                          # channel by channel, as lookups invert
-            values = dr.maximum(0, 1 - values)
-        if self.channels == 3:
-            values = mi.luminance(values)
-        # summed scaled by 2^-40 (exact, a power of two): texels near float32's maximum
-        # (3.4e38) must not overflow the sum of up to 2^40 texels
-        mean = dr.mean(values * 2.0**-40) * 2.0**40
-        dr.eval(mean)
-        return mean
 
     def resolution(self):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
@@ -444,6 +458,7 @@ class Plugin(PbrtTexture):
                               f'(H, W, 3), got {tuple(t.shape)}')
         self._check_new_texels()
         self._shared = None
+        self.texel_mean = None              # (the texels' own mean, see _update_mean)
         # Texels being differentiated get every level now: forward mode propagates the input's
         # derivative through the pyramid before the render (Mitsuba's recipe), so levels built
         # lazily during the render (under pbrt_path) would miss it.
