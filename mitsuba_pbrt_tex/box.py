@@ -85,8 +85,10 @@ from .wrap import COORD_LIMIT, wrap_1d
 #: level, and loses the detail of the levels it skips (README, *Speed against error*: what 6
 #: costs and saves next to a far edge).
 MAX_BANDS = 6
-#: The level's Manhattan perimeter 2·(|e0x| + |e0y| + |e1x| + |e1y|) is at most this many texels.
-MAX_PERIMETER = 256
+#: The level's Manhattan perimeter 2·(|e0x| + |e0y| + |e1x| + |e1y|) is at most this many texels:
+#: the walk's iterations, and a SIMD packet runs as long as its longest lane (README, *Speed
+#: against error*: what 128 instead of 256 saves and costs next to a far edge).
+MAX_PERIMETER = 128
 #: Footprints under this area (level-0 texels²) are points: bilinear at level 0.
 MIN_AREA = 1e-8
 BOX_WRAPS = ('repeat', 'mirror', 'clamp', 'black')
