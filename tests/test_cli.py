@@ -51,6 +51,51 @@ def test_render_writes_exr_and_png(small_scene, tmp_path):
     assert not any(p.name.startswith('.tmp-') for p in (tmp_path / 'out').iterdir())
 
 
+def _exr(path):
+    import OpenEXR
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        return list(ch), {n: np.asarray(c.pixels) for n, c in ch.items()}
+
+
+def test_render_names_every_films_channels_and_converts_them_for_the_png(small_scene, tmp_path):
+    """Films that are not RGB, and Mitsuba's aov integrator (whose film also holds its inner
+    integrator's channels, which the developed image leaves out): the EXR's channel names are
+    the film's own, and the PNG shows the image — XYZ converted back to RGB equals the RGB
+    film's PNG (the same samples: the film converts each sample to XYZ), luminance is grey.
+    Writing failed for all but XYZ, which was written as if it were RGB."""
+    text = small_scene.read_text()
+    film = '<integer name="height" value="24"/>'
+    outputs = {}
+    for name, extra, integrator in (
+            ('rgb', '', None),
+            ('xyz', '<string name="pixel_format" value="xyz"/>', None),
+            ('ya', '<string name="pixel_format" value="luminance_alpha"/>', None),
+            ('y_aovs', '<string name="pixel_format" value="luminance"/>',
+             '<integrator type="pbrt_path"><string name="aovs" value="duv_dx"/></integrator>'),
+            ('aov', '', '<integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
+                        '<integrator type="pbrt_path"/></integrator>')):
+        scene = tmp_path / f'{name}.xml'
+        body = text.replace(film, film + extra)
+        if integrator:
+            body = body.replace('<integrator type="pbrt_path"/>', integrator)
+        scene.write_text(body)
+        out = tmp_path / f'{name}.exr'
+        cli('render', str(scene), '-o', str(out), '--spp', '4')
+        outputs[name] = _exr(out)
+    assert [sorted(outputs[k][0]) for k in ('rgb', 'xyz', 'ya', 'y_aovs', 'aov')] == [
+        sorted(n) for n in (['R', 'G', 'B'], ['X', 'Y', 'Z'], ['Y', 'A'],
+                            ['Y', 'duv_dx.u', 'duv_dx.v'], ['R', 'G', 'B', 'dd.y.T'])]   # (EXR sorts)
+    names, ch = outputs['aov']
+    assert np.isfinite(ch['dd.y.T']).all() and ch['dd.y.T'].max() > 1     # a depth, not colour
+    import mitsuba as mi
+    png = {k: np.array(mi.Bitmap(str(tmp_path / f'{k}.png')), dtype=np.int32)
+           for k in ('rgb', 'xyz', 'ya')}
+    # 8-bit codes of the same image: at most one code apart (float32 round trip through XYZ)
+    assert png['xyz'].shape == png['rgb'].shape and np.abs(png['xyz'] - png['rgb']).max() <= 1
+    assert (png['ya'][..., 0] == png['ya'][..., 1]).all() and png['ya'][..., 0].std() > 0
+
+
 @pytest.mark.parametrize('target', ['scene.exr', 'tex.exr'])
 def test_render_never_overwrites_scene_or_inputs(small_scene, tmp_path, target):
     if target == 'scene.exr':
