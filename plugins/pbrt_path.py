@@ -306,13 +306,13 @@ class Plugin:
         kind = sensor.class_name()
         if kind not in PIXEL_SENSORS:
             raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs a '
-                              f'perspective sensor, got {kind}; accepted values: '
-                              f'{", ".join(FOOTPRINTS)}')
+                              f'perspective sensor, got {kind}; with this sensor use "sample" '
+                              f'(accepted values: {", ".join(FOOTPRINTS)})')
         rfilter = sensor.film().rfilter().class_name()
         if rfilter not in PIXEL_FILTERS:
             raise PluginError(f'{self.NAME}: parameter "footprint": value "pixel" needs the '
-                              f'film filter "box" or "gaussian", got {rfilter}; accepted '
-                              f'values: {", ".join(FOOTPRINTS)}')
+                              f'film filter "box" or "gaussian", got {rfilter}; with this '
+                              f'filter use "sample" (accepted values: {", ".join(FOOTPRINTS)})')
         return sensor
 
     # ------------------------------------------------------------------ the path tracer

@@ -195,4 +195,5 @@ def test_pixel_footprints_are_refused_clearly_without_a_perspective_sensor():
         mi.render(scene, spp=1)
     # mi.render raises from inside its dr.custom operation: our error is the cause
     assert 'pbrt_path: parameter "footprint": value "pixel" needs a perspective sensor, got ' \
-        'OrthographicCamera; accepted values: sample, pixel' in str(e.value.__cause__)
+        'OrthographicCamera; with this sensor use "sample" (accepted values: sample, pixel)' \
+        in str(e.value.__cause__)
