@@ -276,9 +276,9 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     if not scene.sensors():
         raise RenderError(f'scene "{scene_path}" has no sensor: add a <sensor> (a camera)')
     total, passes, per_pass = _sample_plan(scene.sensors()[0], spp)
-    image, t_first, t_render = _render_passes(scene, total, passes, per_pass, progress, stream)
-    _write_outputs(exr_path, png_path, image, channel_names(scene.sensors()[0].film(),
-                                                            image.shape[-1]))
+    image, names, t_first, t_render = _render_passes(scene, total, passes, per_pass, progress,
+                                                     stream)
+    _write_outputs(exr_path, png_path, image, names)
     return dict(scene=scene_path, exr=exr_path, png=png_path, spp=total, passes=passes,
                 load_s=t_load, first_pass_s=t_first, render_s=t_render,
                 nonfinite=int((~np.isfinite(image)).sum()), shape=tuple(image.shape),
@@ -303,8 +303,8 @@ def _sample_plan(sensor, spp):
 
 
 def _render_passes(scene, total, passes, per_pass, progress, stream):
-    """(the mean image of the passes, time of the first pass, total time); the integrator's
-    footprint follows the total spp (``set_total_spp``) while it renders."""
+    """(the mean image of the passes, its channel names, time of the first pass, total time);
+    the integrator's footprint follows the total spp (``set_total_spp``) while it renders."""
     import mitsuba as mi
     integrator = scene.integrator()
     if hasattr(integrator, 'set_total_spp'):
@@ -314,7 +314,8 @@ def _render_passes(scene, total, passes, per_pass, progress, stream):
     t_first = None
     try:
         for i in range(passes):
-            img = np.array(mi.render(scene, spp=per_pass, seed=i), dtype=np.float64)
+            mi.render(scene, spp=per_pass, seed=i)
+            img, names = film_image(scene.sensors()[0].film())
             if t_first is None:
                 t_first = time.perf_counter() - t_start
             acc = img if acc is None else acc + img
@@ -328,46 +329,37 @@ def _render_passes(scene, total, passes, per_pass, progress, stream):
             integrator.set_total_spp(None)
     if progress:
         stream.write('\n')
-    return (acc / passes).astype(np.float32), t_first, time.perf_counter() - t_start
+    return (acc / passes).astype(np.float32), names, t_first, time.perf_counter() - t_start
 
 
-def channel_names(film, count: int) -> list[str]:
-    """The names of the ``count`` channels of a developed image, as the film names them (its
-    pixel format's — R, G, B [, A], Y [, A], X, Y, Z [, A] — then the AOVs'). Mitsuba's ``aov``
-    integrator gives the film its inner integrator's channels too, which the developed image
-    leaves out: the film's base channels are kept, then its last ones. Names that cannot be
-    matched to the image are left to the writer (generic ``C<i>``)."""
-    names = [c.name for c in film.bitmap().struct_()]
-    if len(names) == count:
-        return names
-    base = int(film.base_channels_count())
-    if base <= count <= len(names):
-        return names[:base] + names[len(names) - (count - base):]
-    return []
+def film_image(film) -> tuple[np.ndarray, list[str]]:
+    """The film's developed image (H, W, C) and its channels' names, as Mitsuba's own command
+    line writes them (``film.bitmap()``): the pixel format's — R, G, B [, A], Y [, A], X, Y, Z
+    [, A] — then the AOVs'. (The tensor ``mi.render`` returns holds the channels of Mitsuba's
+    ``aov`` integrator in another order than the film names them.)"""
+    bmp = film.bitmap()
+    image = np.array(bmp, dtype=np.float64)
+    return image.reshape(image.shape[:2] + (-1,)), [c.name for c in bmp.struct_()]
 
 
 def display_rgb(image: np.ndarray, names: list[str]) -> np.ndarray:
     """Linear sRGB for the PNG from the film's base channels: RGB as they are, XYZ converted
     (Mitsuba's ``xyz_to_srgb``), luminance Y as grey."""
     import mitsuba as mi
-    if image.ndim == 2:
-        image = image[..., None]
     if names[:3] == ['R', 'G', 'B']:
         return image[..., :3]
     if names[:3] == ['X', 'Y', 'Z']:
         xyz = image[..., :3].reshape(-1, 3).astype(np.float32)
         rgb = mi.xyz_to_srgb(mi.Color3f(*(mi.Float(xyz[:, i]) for i in range(3))))
         return np.stack([np.array(rgb[i]) for i in range(3)], -1).reshape(image.shape[:2] + (3,))
-    if names[:1] == ['Y'] or image.shape[2] < 3:
-        return np.repeat(image[..., :1], 3, axis=2)
-    return image[..., :3]
+    return np.repeat(image[..., :1], 3, axis=2)
 
 
 def _write_outputs(exr_path, png_path, image, names):
     """The EXR (every channel, named as the film names it) and the tone-mapped PNG."""
     from .outputs import write_exr, write_png
     try:
-        write_exr(exr_path, image if image.ndim == 3 else image[..., None], names or None)
+        write_exr(exr_path, image, names)
         write_png(png_path, display_rgb(image, names))
     except Exception as e:
         raise RenderError(f'writing the image failed: {error_line(e)}') from None

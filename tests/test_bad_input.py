@@ -609,7 +609,8 @@ def test_cli_render_time_errors_name_their_cause(scenes):
     (rc, _, err), = run_cli_batch([['render', str(scenes / 'tent.xml'), '-o',
                                     str(scenes / 'out' / 'img.exr')]])
     _one_error_line(rc, err, ['rendering failed: pbrt_path: parameter "footprint": value "pixel" '
-                              'needs the film filter "box" or "gaussian", got TentFilter'])
+                              'needs the film filter "box" or "gaussian", got TentFilter; with '
+                              'this filter use "sample" (accepted values: sample, pixel)'])
 
 
 def test_cli_png_twin_replaces_only_earlier_renders(scenes):

@@ -60,10 +60,13 @@ def _exr(path):
 
 def test_render_names_every_films_channels_and_converts_them_for_the_png(small_scene, tmp_path):
     """Films that are not RGB, and Mitsuba's aov integrator (whose film also holds its inner
-    integrator's channels, which the developed image leaves out): the EXR's channel names are
-    the film's own, and the PNG shows the image — XYZ converted back to RGB equals the RGB
+    integrator's channels, RGBA and AOVs, in another order than the tensor mi.render returns):
+    the EXR's channels are the film's own, named as the film names them (as Mitsuba's command
+    line writes them), and the PNG shows the image — XYZ converted back to RGB equals the RGB
     film's PNG (the same samples: the film converts each sample to XYZ), luminance is grey.
-    Writing failed for all but XYZ, which was written as if it were RGB."""
+    Before: the aov integrator's render was lost (writing failed), a luminance_alpha film lost
+    its PNG, and XYZ, a luminance film's AOVs and the aov integrator's inner channels were
+    written under wrong names (a user trial and a review)."""
     text = small_scene.read_text()
     film = '<integer name="height" value="24"/>'
     outputs = {}
@@ -74,7 +77,10 @@ def test_render_names_every_films_channels_and_converts_them_for_the_png(small_s
             ('y_aovs', '<string name="pixel_format" value="luminance"/>',
              '<integrator type="pbrt_path"><string name="aovs" value="duv_dx"/></integrator>'),
             ('aov', '', '<integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
-                        '<integrator type="pbrt_path"/></integrator>')):
+                        '<integrator type="pbrt_path"/></integrator>'),
+            ('aov_inner', '', '<integrator type="aov"><string name="aovs" value="dd:depth"/>'
+                              '<integrator type="pbrt_path"><string name="aovs" '
+                              'value="duv_dx"/></integrator></integrator>')):
         scene = tmp_path / f'{name}.xml'
         body = text.replace(film, film + extra)
         if integrator:
@@ -83,11 +89,21 @@ def test_render_names_every_films_channels_and_converts_them_for_the_png(small_s
         out = tmp_path / f'{name}.exr'
         cli('render', str(scene), '-o', str(out), '--spp', '4')
         outputs[name] = _exr(out)
-    assert [sorted(outputs[k][0]) for k in ('rgb', 'xyz', 'ya', 'y_aovs', 'aov')] == [
-        sorted(n) for n in (['R', 'G', 'B'], ['X', 'Y', 'Z'], ['Y', 'A'],
-                            ['Y', 'duv_dx.u', 'duv_dx.v'], ['R', 'G', 'B', 'dd.y.T'])]   # (EXR sorts)
-    names, ch = outputs['aov']
-    assert np.isfinite(ch['dd.y.T']).all() and ch['dd.y.T'].max() > 1     # a depth, not colour
+    inner = ['_arg_0.R', '_arg_0.G', '_arg_0.B', '_arg_0.A']
+    assert [sorted(outputs[k][0]) for k in ('rgb', 'xyz', 'ya', 'y_aovs', 'aov', 'aov_inner')] \
+        == [sorted(n) for n in (['R', 'G', 'B'], ['X', 'Y', 'Z'], ['Y', 'A'],
+                                ['Y', 'duv_dx.u', 'duv_dx.v'], ['R', 'G', 'B'] + inner + ['dd.y.T'],
+                                ['R', 'G', 'B'] + inner + ['_arg_0.duv_dx.u', '_arg_0.duv_dx.v',
+                                                           'dd.T'])]       # (EXR sorts names)
+    for key in ('aov', 'aov_inner'):
+        _, ch = outputs[key]
+        depth = ch['dd.y.T' if key == 'aov' else 'dd.T']
+        assert np.isfinite(depth).all() and depth.max() > 1               # a depth, not colour
+        for c in 'RGB':                     # the inner integrator's colour is the image's
+            np.testing.assert_array_equal(ch[f'_arg_0.{c}'], ch[c])
+        assert ch['_arg_0.A'].min() >= -1e-6 and ch['_arg_0.A'].max() <= 1 + 1e-6   # coverage
+    _, ch = outputs['aov_inner']
+    assert 0 < np.abs(ch['_arg_0.duv_dx.u']).max() < 0.1     # a uv differential, not colour
     import mitsuba as mi
     png = {k: np.array(mi.Bitmap(str(tmp_path / f'{k}.png')), dtype=np.int32)
            for k in ('rgb', 'xyz', 'ya')}
