@@ -202,14 +202,19 @@ class Pyramid:
     ``sizes[l]`` starting at texel ``offsets[l]``. Made by :func:`build_pyramid`, never changed.
 
     A Dr.Jit struct: ``buffer`` is what Dr.Jit traverses (frozen functions); the rest is static
-    shape information (kernels use the sizes and offsets as literals, like the image size)."""
+    shape information (kernels use the sizes and offsets as literals, like the image size). A
+    frozen function keys its recordings on the arrays it sees — their types and widths, not the
+    literals inside its kernels — so ``width_key``, an array of ``width`` zeros (a literal: no
+    memory), tells pyramids of one buffer size apart (16×32 and 32×16 texels): a recording made
+    for one shape was replayed for the other (found in a user trial)."""
 
-    DRJIT_STRUCT = {'buffer': object}
+    DRJIT_STRUCT = {'buffer': object, 'width_key': object}
 
     def __init__(self, buffer=None, width: int = 1, height: int = 1, channels: int = 1,
                  sizes=None):
         self.buffer = buffer
         self.width, self.height, self.channels = width, height, channels
+        self.width_key = dr.zeros(mi.UInt32, width)
         self.sizes = list(sizes) if sizes is not None else [(width, height)]
         self.offsets = [0]
         for w, h in self.sizes[:-1]:

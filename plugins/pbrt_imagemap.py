@@ -428,6 +428,31 @@ class Plugin(PbrtTexture):
     def resolution(self):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))
 
+    def carry_forward_gradient(self) -> list:
+        """Forward mode started after the render, in Mitsuba's tutorial order (``dr.forward(
+        params[key])`` after ``mi.render``): Dr.Jit then hands the render the texels' derivative
+        but not the pyramid's, whose edges from the texels lie outside the render's AD scope, so
+        the gradient image was silently zero. Called by ``pbrt_path.render_forward``: where the
+        texels carry a derivative that has not reached the pyramid, the pyramid of that
+        derivative (the pyramid is linear in the texels) is set as the gradient of the buffer and
+        of the aliases the filter's loops read. Returns the variables given a gradient (cleared
+        after the render). Forward mode propagated before the render leaves nothing to do."""
+        if not dr.grad_enabled(self.data):
+            return []
+        buffer = self.pyramid.buffer
+        tangent = dr.detach(dr.grad(self.data))
+        if not dr.grad_enabled(buffer) or not bool(dr.any(tangent.array != 0)) or \
+                bool(dr.any(dr.grad(buffer) != 0)):
+            return []
+        pyramid_tangent = build_pyramid(mi.TensorXf(tangent), self._levels).buffer
+        targets = [buffer]
+        if self._tables is not None:
+            targets += [getattr(self._tables, k) for k in type(self._tables).DRJIT_STRUCT]
+        targets = [v for v in targets if dr.grad_enabled(v)]
+        for v in targets:
+            dr.set_grad(v, pyramid_tangent)
+        return targets
+
     def prepare_differentials(self):
         if not self._levels:
             self._rebuild(levels=True)

@@ -246,12 +246,19 @@ class Plugin:
             self._handover = None       # a later sample() from elsewhere gets foreign rays
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        """``RBIntegrator.render_forward`` on :meth:`begin`'s view of the sensor."""
+        """``RBIntegrator.render_forward`` on :meth:`begin`'s view of the sensor, with the
+        texels' forward derivatives carried into their pyramids where Dr.Jit's traversal did
+        not (``carry_forward_gradient``: ``dr.forward`` called after ``mi.render``)."""
+        carried = [v for node in mi.traverse(scene).hierarchy.keys()
+                   if hasattr(node, 'carry_forward_gradient')
+                   for v in node.carry_forward_gradient()]
         try:
             return self._pbrt_base.render_forward(self, scene, params,
                                                   self.begin(scene, sensor, seed), seed, spp)
         finally:
             self._handover = None
+            for v in carried:
+                dr.clear_grad(v)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         """``RBIntegrator.render_backward`` on :meth:`begin`'s view of the sensor."""

@@ -118,11 +118,12 @@ def numpy_reference(fn, *inputs):
     return out
 
 
-def adam_steps(load_scene, key, steps, frozen, spp=4):
+def adam_steps(load_scene, key, steps, frozen, spp=4, transpose_at=None):
     """Mitsuba's frozen-optimisation pattern (its own test_freeze.py): a function renders and
     back-propagates, ``params.update(opt)`` and ``opt.step()`` run outside it; with ``frozen``
-    the function goes through ``dr.freeze``. Returns ([(loss, gradient of ``key``)] per step,
-    the number of recordings or None)."""
+    the function goes through ``dr.freeze``. ``transpose_at``: before that step the texels of
+    ``key`` (H, W, C) become their (W, H, C) transpose, given to the optimiser anew. Returns
+    ([(loss, gradient of ``key``)] per step, the number of recordings or None)."""
     scene = load_scene()
 
     def optimize(scene, seed):
@@ -140,6 +141,10 @@ def adam_steps(load_scene, key, steps, frozen, spp=4):
     opt[key] = params[key]
     history = []
     for step in range(steps):
+        if step == transpose_at:
+            texels = np.array(opt[key])
+            params[key] = mi.TensorXf(np.ascontiguousarray(texels.transpose(1, 0, 2)))
+            opt[key] = params[key]
         params.update(opt)
         loss = fn(scene, mi.UInt32(step))
         history.append((float(np.array(loss).ravel()[0]), np.array(dr.grad(opt[key]))))
@@ -147,12 +152,13 @@ def adam_steps(load_scene, key, steps, frozen, spp=4):
     return history, (fn.n_recordings if frozen else None)
 
 
-def assert_frozen_steps_equal_unfrozen(load_scene, key, steps, spp=4):
+def assert_frozen_steps_equal_unfrozen(load_scene, key, steps, spp=4, transpose_at=None):
     """``adam_steps`` frozen and not: calls were replayed (not all recorded), every step's
     texel gradient is non-zero, and losses and gradients are equal up to float32 rounding of
     the replayed kernels (1e-5 relative, 1e-7 absolute)."""
-    plain, _ = adam_steps(load_scene, key, steps, False, spp=spp)
-    frozen, recordings = adam_steps(load_scene, key, steps, True, spp=spp)
+    plain, _ = adam_steps(load_scene, key, steps, False, spp=spp, transpose_at=transpose_at)
+    frozen, recordings = adam_steps(load_scene, key, steps, True, spp=spp,
+                                    transpose_at=transpose_at)
     assert recordings < len(frozen)
     for (loss_p, grad_p), (loss_f, grad_f) in zip(plain, frozen):
         assert np.abs(grad_p).sum() > 0
