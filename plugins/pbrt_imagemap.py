@@ -436,8 +436,10 @@ class Plugin(PbrtTexture):
         texels carry a derivative that has not reached the pyramid, the pyramid of that
         derivative (the pyramid is linear in the texels) is set as the gradient of the buffer and
         of the aliases the filter's loops read. Returns the variables given a gradient (cleared
-        after the render). Forward mode propagated before the render leaves nothing to do."""
-        if not dr.grad_enabled(self.data):
+        after the render). Forward mode propagated before the render leaves nothing to do; a
+        frozen function is left as it is (the checks read values back, which recording
+        forbids)."""
+        if not dr.grad_enabled(self.data) or dr.flag(dr.JitFlag.FreezingScope):
             return []
         buffer = self.pyramid.buffer
         tangent = dr.detach(dr.grad(self.data))

@@ -231,6 +231,35 @@ def test_frozen_steps_follow_a_texture_transposed_between_them(filt):
         DATA_KEY, 7, transpose_at=3)
 
 
+def test_frozen_forward_mode_steps_equal_unfrozen_ones():
+    """A frozen function propagating forward mode before the render (the recipe prb needs too)
+    and rendering with pbrt_path: its gradient images equal the unfrozen ones. pbrt_path's
+    carrying of a forward derivative into the pyramid reads values back, which recording
+    forbids: it stays out of frozen functions (recording failed, found in a review)."""
+    scene = textured_scene('pbrt_path', 'trilinear', np.random.default_rng(1), size=16)
+    params = mi.traverse(scene)
+    params.keep(DATA_KEY)
+
+    def forward_image(scene, params, seed):
+        data = params[DATA_KEY]
+        dr.enable_grad(data)
+        params.update()
+        dr.set_grad(data, 1.0)
+        dr.enqueue(dr.ADMode.Forward, data)
+        dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+        image = mi.render(scene, params, spp=4, seed=seed)
+        dr.forward_to(image)
+        return dr.grad(image)
+
+    frozen = dr.freeze(forward_image)
+    for step in range(4):
+        got = np.array(frozen(scene, params, mi.UInt32(step)))
+        want = np.array(forward_image(scene, params, mi.UInt32(step)))
+        assert np.abs(want).sum() > 0
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+    assert frozen.n_recordings < 4
+
+
 @pytest.mark.parametrize('texture, key', [
     ({'type': 'pbrt_constant', 'value': 0.5}, 'value'),
     ({'type': 'pbrt_checkerboard', 'tex1': 0.7, 'tex2': 0.2, 'uscale': 4, 'vscale': 4}, 'tex1.value')])
