@@ -41,8 +41,27 @@ FMOD_PERIOD = float(2 ** 30)
 LACUNARITY = 1.99          # pbrt's frequency step between octaves
 
 
-def _perm_table():
-    return mi.Int32(np.concatenate([PERMUTATION, PERMUTATION]))
+_device_tables: dict = {}
+
+
+def device_table(name: str, make):
+    """A constant table as an evaluated device array (``make()``), one per name and variant,
+    made on first use — by the constructors of the textures that read it — so that a render
+    traced inside ``dr.freeze`` copies nothing from the host (made there, the copy could not be
+    recorded: the process aborted, found in a user trial) nor makes an array inside the
+    recording (which it refused)."""
+    key = (name, mi.variant())
+    table = _device_tables.get(key)
+    if table is None:
+        table = make()
+        dr.eval(table)
+        _device_tables[key] = table
+    return table
+
+
+def perm_table():
+    """The permutation table, stored twice (:func:`device_table`)."""
+    return device_table('perm', lambda: mi.Int32(np.concatenate([PERMUTATION, PERMUTATION])))
 
 
 def _reduce(x):
@@ -65,7 +84,7 @@ def _weight(t):
 
 def noise(p: mi.Point3f, perm=None) -> mi.Float:
     """Perlin noise at p (pbrt ``Noise(Point3f)``); 0 at integer lattice points."""
-    perm = _perm_table() if perm is None else perm
+    perm = perm_table() if perm is None else perm
     x, y, z = _reduce(p.x), _reduce(p.y), _reduce(p.z)
     fx, fy, fz = dr.floor(x), dr.floor(y), dr.floor(z)
     dx, dy, dz = x - fx, y - fy, z - fz
@@ -100,9 +119,8 @@ def octave_count(dpdx: mi.Vector3f, dpdy: mi.Vector3f, max_octaves: int, antiali
     return dr.clip(dr.select(dr.isnan(n), 0.0, n), 0.0, float(max_octaves))
 
 
-def _octaves(p, n, omega, turbulent: bool, max_octaves: int):
+def _octaves(p, n, omega, turbulent: bool, max_octaves: int, perm):
     """Σ_{i < floor(n)} o_i · f(Noise(λ_i p)) with f = identity or |·|; returns (sum, λ, o)."""
-    perm = _perm_table()
     n_int = dr.floor(n)
 
     def cond(i, lam, o, total):
@@ -119,19 +137,23 @@ def _octaves(p, n, omega, turbulent: bool, max_octaves: int):
     return total, lam, o, perm
 
 
-def fbm(p, dpdx, dpdy, omega, max_octaves: int, antialias: bool = True):
-    """pbrt ``FBm``."""
+def fbm(p, dpdx, dpdy, omega, max_octaves: int, antialias: bool = True, perm=None):
+    """pbrt ``FBm`` (``perm``: the texture's :func:`perm_table`, which a frozen function must
+    find among the texture's members)."""
     n = octave_count(dpdx, dpdy, max_octaves, antialias)
-    total, lam, o, perm = _octaves(p, n, omega, False, max_octaves)
+    perm = perm_table() if perm is None else perm
+    total, lam, o, perm = _octaves(p, n, omega, False, max_octaves, perm)
     partial = smoothstep(0.3, 0.7, n - dr.floor(n))
     return dr.fma(o * partial, noise(lam * p, perm), total)
 
 
-def turbulence(p, dpdx, dpdy, omega, max_octaves: int, antialias: bool = True):
-    """pbrt ``Turbulence``: |noise| octaves; clamped octaves replaced by their average 0.2."""
+def turbulence(p, dpdx, dpdy, omega, max_octaves: int, antialias: bool = True, perm=None):
+    """pbrt ``Turbulence``: |noise| octaves; clamped octaves replaced by their average 0.2
+    (``perm`` as for :func:`fbm`)."""
     n = octave_count(dpdx, dpdy, max_octaves, antialias)
     n_int = dr.floor(n)
-    total, lam, o, perm = _octaves(p, n, omega, True, max_octaves)
+    perm = perm_table() if perm is None else perm
+    total, lam, o, perm = _octaves(p, n, omega, True, max_octaves, perm)
     partial = smoothstep(0.3, 0.7, n - n_int)
     total = dr.fma(o, dr.lerp(0.2, dr.abs(noise(lam * p, perm)), partial), total)
     # for i in [nInt, maxOctaves): sum += o·0.2; o *= omega   (geometric series)

@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .mapping import mapping_3d
+from .noise import perm_table
 from .texture import PbrtTexture
 
 NOISE_AAMODES = ('clamp', 'none')
@@ -31,6 +32,8 @@ class NoiseTexture(PbrtTexture):
     ROUGHNESS: float | None = 0.5
 
     def configure(self, p):
+        # made here, outside any render, and a member a frozen function finds (device_table)
+        self._perm = perm_table()
         self.mapping = mapping_3d(p)
         self.octaves = p.int('octaves', self.OCTAVES, lo=0, hi=30) if self.OCTAVES else None
         self.roughness = p.float('roughness', self.ROUGHNESS, lo=0.0) if self.ROUGHNESS else None

@@ -17,15 +17,15 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_pbrt_tex.mapping import mapping_2d
-from mitsuba_pbrt_tex.noise import noise
+from mitsuba_pbrt_tex.noise import noise, perm_table
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
 
 RADIUS = 0.35
 MAX_SHIFT = 0.5 - RADIUS
 
 
-def _noise2(x, y):
-    return noise(mi.Point3f(x, y, 0.5))
+def _noise2(x, y, perm):
+    return noise(mi.Point3f(x, y, 0.5), perm)
 
 
 #: The fraction of cells that hold a dot (``Noise(cell + .5) > 0``) over the noise's period of
@@ -37,6 +37,8 @@ class Plugin(PbrtTexture):
     NAME = 'pbrt_dots'
 
     def configure(self, p):
+        # made here, outside any render, and a member a frozen function finds (device_table)
+        self._perm = perm_table()
         self.nested_texture(p, 'inside', 1.0)
         self.nested_texture(p, 'outside', 0.0)
         self.mapping = mapping_2d(p)
@@ -47,9 +49,9 @@ class Plugin(PbrtTexture):
         s = dr.select(dr.isfinite(st.x), st.x, 0.0)
         t = dr.select(dr.isfinite(st.y), st.y, 0.0)
         s_cell, t_cell = dr.floor(s + 0.5), dr.floor(t + 0.5)
-        has_dot = _noise2(s_cell + 0.5, t_cell + 0.5) > 0
-        s_c = s_cell + MAX_SHIFT * _noise2(s_cell + 1.5, t_cell + 2.8)
-        t_c = t_cell + MAX_SHIFT * _noise2(s_cell + 4.5, t_cell + 9.8)
+        has_dot = _noise2(s_cell + 0.5, t_cell + 0.5, self._perm) > 0
+        s_c = s_cell + MAX_SHIFT * _noise2(s_cell + 1.5, t_cell + 2.8, self._perm)
+        t_c = t_cell + MAX_SHIFT * _noise2(s_cell + 4.5, t_cell + 9.8, self._perm)
         ds, dt = s - s_c, t - t_c
         return has_dot & (ds * ds + dt * dt < RADIUS * RADIUS)
 

@@ -20,7 +20,8 @@ class Plugin(NoiseTexture):
     NAME = 'pbrt_fbm'
 
     def value(self, tc):
-        return fbm(tc.p, tc.dpdx, tc.dpdy, self.roughness, self.octaves, self.antialias)
+        return fbm(tc.p, tc.dpdx, tc.dpdy, self.roughness, self.octaves, self.antialias,
+                   self._perm)
 
     def mean(self):
         return mi.Float(0.0)

@@ -24,7 +24,7 @@ colour of the spline, as arbitrary as pbrt's.
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.noise import fbm
+from mitsuba_pbrt_tex.noise import device_table, fbm
 from mitsuba_pbrt_tex.solid import NoiseTexture
 
 #: 2π as the sum of three float32 numbers, the first with 8 significant bits (Cody–Waite): for
@@ -49,10 +49,16 @@ COLORS = [(.58, .58, .6), (.58, .58, .6), (.58, .58, .6), (.5, .5, .5), (.6, .59
 N_SEGMENTS = len(COLORS) - 3
 
 
+def _colors():
+    """The control points, flat, as a device table (:func:`~mitsuba_pbrt_tex.noise.device_table`)."""
+    return device_table('marble', lambda: mi.Float([c for rgb in COLORS for c in rgb]))
+
+
 class Plugin(NoiseTexture):
     NAME = 'pbrt_marble'
 
     def configure_more(self, p):
+        self._colors = _colors()        # made here, a member (see device_table)
         self.scale = p.float('scale', 1.0)
         self.variation = p.float('variation', 0.2)
         self.describe('scale', self.scale)
@@ -61,13 +67,12 @@ class Plugin(NoiseTexture):
     def value(self, tc):
         p = tc.p * self.scale
         m = p.y + self.variation * fbm(p, tc.dpdx * self.scale, tc.dpdy * self.scale,
-                                       self.roughness, self.octaves, self.antialias)
+                                       self.roughness, self.octaves, self.antialias, self._perm)
         t = 0.5 + 0.5 * _sin(m)
         first = dr.clip(dr.floor(t * N_SEGMENTS), 0, N_SEGMENTS - 1)
         u = t * N_SEGMENTS - first
         idx = mi.UInt32(first)
-        cp = [dr.gather(mi.Color3f, mi.Float([c for rgb in COLORS for c in rgb]), idx + k)
-              for k in range(4)]
+        cp = [dr.gather(mi.Color3f, self._colors, idx + k) for k in range(4)]
         # de Casteljau evaluation of the cubic Bézier segment
         a = [dr.lerp(cp[k], cp[k + 1], u) for k in range(3)]
         b = [dr.lerp(a[k], a[k + 1], u) for k in range(2)]

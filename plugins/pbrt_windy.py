@@ -22,8 +22,9 @@ class Plugin(NoiseTexture):
     ROUGHNESS = None
 
     def value(self, tc):
-        strength = fbm(0.1 * tc.p, 0.1 * tc.dpdx, 0.1 * tc.dpdy, 0.5, 3, self.antialias)
-        height = fbm(tc.p, tc.dpdx, tc.dpdy, 0.5, 6, self.antialias)
+        strength = fbm(0.1 * tc.p, 0.1 * tc.dpdx, 0.1 * tc.dpdy, 0.5, 3, self.antialias,
+                       self._perm)
+        height = fbm(tc.p, tc.dpdx, tc.dpdy, 0.5, 6, self.antialias, self._perm)
         return dr.abs(strength) * height
 
     def mean(self):

@@ -20,7 +20,8 @@ class Plugin(NoiseTexture):
     NAME = 'pbrt_wrinkled'
 
     def value(self, tc):
-        return turbulence(tc.p, tc.dpdx, tc.dpdy, self.roughness, self.octaves, self.antialias)
+        return turbulence(tc.p, tc.dpdx, tc.dpdy, self.roughness, self.octaves,
+                          self.antialias, self._perm)
 
     def mean(self):
         w = self.roughness
