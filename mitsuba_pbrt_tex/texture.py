@@ -210,12 +210,16 @@ class PbrtTexture:
         saved, and a texture that is infinite or NaN where its weight is 0 leaves the blend
         finite. Computed as ``tex1 + amount·(tex2 - tex1)``, exact for equal values whatever the
         amount (pbrt's form is NaN for an amount of 3e38 and two values of 2: -inf + inf), and
-        kept within float32's range (:func:`finite_range`)."""
+        kept within float32's range (:func:`finite_range`). An amount carrying gradients reads
+        both textures everywhere: its derivative ``tex2 - tex1`` is needed where pbrt skips one
+        (an amount of 0 or 1 had a gradient of 0: an optimiser started there never moved)."""
         use1, use2 = amount != 1, amount != 0
-        t1 = self.nested_eval('tex1', si, kind, active & use1)
-        t2 = self.nested_eval('tex2', si, kind, active & use2)
+        differentiated = dr.grad_enabled(amount)
+        t1 = self.nested_eval('tex1', si, kind, active & (use1 | differentiated))
+        t2 = self.nested_eval('tex2', si, kind, active & (use2 | differentiated))
         both = dr.fma(amount, t2 - t1, t1)
-        return finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
+        out = finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
+        return dr.replace_grad(out, both) if differentiated else out
 
     # ------------------------------------------------------------------ Mitsuba interface
     def mean(self):

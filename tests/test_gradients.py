@@ -139,6 +139,40 @@ def test_gradient_reaches_base_texels_through_coarse_levels_only(rng):
 
 
 # ------------------------------------------------------------------------------------ other params
+@pytest.mark.parametrize('plugin, key, value', [('pbrt_mix', 'amount', 0.0),
+                                                 ('pbrt_mix', 'amount', 1.0),
+                                                 ('pbrt_scale', 'scale', 0.0)])
+@pytest.mark.parametrize('forward', [False, True])
+def test_gradient_where_pbrt_skips_a_texture(plugin, key, value, forward):
+    """pbrt-v4 skips tex2 where a mix's amount is 0 (tex1 at 1) and tex where a scale is 0; the
+    derivative there is tex2 - tex1 (tex) all the same — it was 0, so an optimiser started at
+    an amount of 0 never moved (found in a user trial). Reference: central differences (the
+    value is linear in the parameter: exact up to float32 rounding)."""
+    textures = {'pbrt_mix': {'tex1': 0.2, 'tex2': 0.9}, 'pbrt_scale': {'tex': 0.6}}[plugin]
+    tex = mi.load_dict({'type': plugin, key: value, **textures})
+    params = mi.traverse(tex)
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.uv = mi.Point2f(0.3, 0.3)
+
+    def at(v):
+        params[f'{key}.value'] = v
+        params.update()
+        return float(tex.eval_1(si)[0])
+    fd = (at(value + 0.25) - at(value - 0.25)) / 0.5
+    param = mi.Float(value)
+    dr.enable_grad(param)
+    params[f'{key}.value'] = param
+    params.update()
+    out = tex.eval_1(si)
+    if forward:
+        dr.forward(params[f'{key}.value'])
+        ad = float(dr.grad(out)[0])
+    else:
+        dr.backward(out)
+        ad = float(dr.grad(params[f'{key}.value'])[0])
+    assert abs(fd) > 0.5 and ad == pytest.approx(fd, rel=1e-5)
+
+
 @pytest.mark.parametrize('case', ['checker_tex1', 'checker_tex2', 'mix_amount', 'constant_value',
                                   'nested_bitmap_in_scale', 'bilerp_corner'])
 def test_other_differentiable_parameters(case, rng):
