@@ -262,8 +262,12 @@ class PbrtTexture:
             if name in self._values:
                 check_finite_update(self.NAME, name, self._values[name][0])
             elif name in self._nested and not self._nested[name].is_spatially_varying():
-                # a float or rgb value (Mitsuba's uniform/srgb texture): its mean is the value
-                check_finite_update(self.NAME, name, self._nested[name].mean(), ' (its mean)')
+                # a float or rgb value (Mitsuba's uniform/srgb texture): its parameters (not its
+                # mean, which overflows for finite channels of 2e38)
+                inner = mi.traverse(self._nested[name])
+                for key in inner.keys():
+                    if dr.is_jit_v(type(inner[key])):
+                        check_finite_update(self.NAME, f'{name}.{key}', inner[key])
         self.on_parameters_changed(keys)
 
     def on_parameters_changed(self, keys: list[str]) -> None:
@@ -279,11 +283,16 @@ class PbrtTexture:
 
 
 def check_finite_update(plugin: str, name: str, value, what: str = '') -> None:
-    """A value set through ``mi.traverse`` must be finite, as at construction (a NaN or inf
+    """A value set through ``mi.traverse`` must be one number (or colour), as at construction
+    (a wider array failed inside Dr.Jit's call of the texture), and finite (a NaN or inf
     parameter would put NaN or inf in every image): else an error naming the fix (the value
-    stays set until a finite one replaces it). Skipped, as the texels' checks are, for values
-    with gradients (an optimiser's step: reading them back would cost a synchronisation per
-    step) and while ``dr.freeze`` records (which cannot read values back)."""
+    stays set until a valid one replaces it). The finiteness check is skipped, as the texels'
+    checks are, for values with gradients (an optimiser's step: reading them back would cost a
+    synchronisation per step) and while ``dr.freeze`` records (which cannot read values back)."""
+    if dr.width(value) != 1:
+        raise PluginError(f'{plugin}: parameter "{name}": a value of width {dr.width(value)} '
+                          f'set through mi.traverse; accepted values: one number or colour '
+                          f'(width 1; set one and call params.update() again)')
     if dr.grad_enabled(value) or dr.flag(dr.JitFlag.FreezingScope):
         return
     v = dr.detach(value)
