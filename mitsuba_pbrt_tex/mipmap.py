@@ -224,6 +224,12 @@ class Pyramid:
     def stride(self) -> int:
         return 4 if self.channels == 3 else 1
 
+    def level0(self) -> 'Pyramid':
+        """The same buffer seen as level 0 alone (lookups that must not pick a level)."""
+        if len(self.sizes) == 1:
+            return self
+        return Pyramid(self.buffer, self.width, self.height, self.channels, self.sizes[:1])
+
     @property
     def complete(self) -> bool:
         """Does it hold every level (else level 0 alone)?"""

@@ -172,6 +172,7 @@ class Plugin(PbrtTexture):
         # params['…to_uv'], as bitmap's (the uv mapping only)
         self._to_uv = self.mapping.to_uv_3x3() if self.mapping.name == 'uv' else None
         self._sampler, self._sampler_lock = None, threading.Lock()    # built when an emitter asks
+        self._footprints = False            # prepared for differentials (prepare_differentials)
         encoding = self._encoding(p)
         self._load(p, encoding)
         self.describe('source', self.source)
@@ -314,8 +315,13 @@ class Plugin(PbrtTexture):
         """(pyramid, what the filter's loops read) for a lookup — read only. Stale state is an
         error naming the fix: gradients enabled on ``data`` after the pyramid was built, without
         ``params.update()``, would not reach the texels (the pyramid is a copy; Mitsuba's
-        ``bitmap`` gives no gradient at all then)."""
+        ``bitmap`` gives no gradient at all then). ``point`` and ``bilinear`` pick a level from
+        the footprint only once this texture was prepared for differentials
+        (:meth:`prepare_differentials`), whatever levels its pyramid holds — another texture of
+        the file, or gradients on the texels, build them too: before, they read level 0."""
         pyr = self.pyramid
+        if self.filter_name in ('point', 'bilinear') and not self._footprints:
+            pyr = pyr.level0()
         if dr.grad_enabled(self.data) and not dr.grad_enabled(pyr.buffer):
             raise PluginError(
                 f'{self.NAME}: parameter "data": gradients were enabled on it after the '
@@ -456,6 +462,7 @@ class Plugin(PbrtTexture):
         return targets
 
     def prepare_differentials(self):
+        self._footprints = True             # point and bilinear pick levels from now on
         if not self._levels:
             self._rebuild(levels=True)
         return True

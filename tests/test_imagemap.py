@@ -210,6 +210,36 @@ def test_single_level_filters_select_level_when_prepared(filt, rng):
         np.testing.assert_allclose(after, lvl2[y, x], atol=2e-6)
 
 
+@pytest.mark.parametrize('filt', ['point', 'bilinear'])
+def test_single_level_filters_stay_at_level_0_whatever_else_builds_levels(filt, rng, tmp_path):
+    """Before this texture is prepared for differentials, point and bilinear read level 0 —
+    also once its pyramid holds every level because another texture of the same file (here a
+    trilinear one) built them, or because gradients on its texels did (params.update()): the
+    same lookup changed value with what else the process had loaded, and finite differences
+    of fresh textures disagreed with gradients (found in a user trial). Reference: the numpy
+    level-0 lookup; after prepare_differentials(), level 2 as above."""
+    img = rng.random((64, 64, 3)).astype(np.float32)
+    path = str(tmp_path / 'img.exr')
+    mi.Bitmap(img).write(path)
+    uv = rng.uniform(0, 1, (200, 2))
+    si = make_si(uv, np.tile([[6.0 / 64, 0.0]], (200, 1)), np.zeros((200, 2)))
+    if filt == 'bilinear':
+        want = ref.bilinear(img, uv[:, 0], uv[:, 1], 'repeat')
+    else:
+        want = img[np.floor(uv[:, 1] * 64).astype(int), np.floor(uv[:, 0] * 64).astype(int)]
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': filt})
+    other = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'trilinear'})
+    np.testing.assert_allclose(A(tex.eval(si)), want, atol=2e-6)
+    del other
+    data = imagemap(img, filter=filt)
+    params = mi.traverse(data)
+    dr.enable_grad(params['data'])
+    params.update()
+    np.testing.assert_allclose(A(data.eval(si)), want, atol=2e-6)
+    assert tex.prepare_differentials()
+    assert np.abs(A(tex.eval(si)) - want).max() > 0.05        # level 2 now
+
+
 @pytest.mark.parametrize('wrap', ['repeat', 'clamp', 'black', 'mirror'])
 @pytest.mark.parametrize('max_aniso', [8.0, 32.0])
 def test_ewa_matches_pbrt_literal(wrap, max_aniso, rng):
