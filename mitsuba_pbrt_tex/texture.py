@@ -212,14 +212,17 @@ class PbrtTexture:
         amount (pbrt's form is NaN for an amount of 3e38 and two values of 2: -inf + inf), and
         kept within float32's range (:func:`finite_range`). An amount carrying gradients reads
         both textures everywhere: its derivative ``tex2 - tex1`` is needed where pbrt skips one
-        (an amount of 0 or 1 had a gradient of 0: an optimiser started there never moved)."""
+        (an amount of 0 or 1 had a gradient of 0: an optimiser started there never moved); where
+        the skipped one is not finite the value stays finite and the derivative is 0."""
         use1, use2 = amount != 1, amount != 0
         differentiated = dr.grad_enabled(amount)
         t1 = self.nested_eval('tex1', si, kind, active & (use1 | differentiated))
         t2 = self.nested_eval('tex2', si, kind, active & (use2 | differentiated))
         both = dr.fma(amount, t2 - t1, t1)
         out = finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
-        return dr.replace_grad(out, both) if differentiated else out
+        if not differentiated:
+            return out
+        return dr.replace_grad(out, dr.select(dr.isfinite(both), both, out))
 
     # ------------------------------------------------------------------ Mitsuba interface
     def mean(self):
@@ -267,7 +270,8 @@ class PbrtTexture:
                 inner = mi.traverse(self._nested[name])
                 for key in inner.keys():
                     if dr.is_jit_v(type(inner[key])):
-                        check_finite_update(self.NAME, f'{name}.{key}', inner[key])
+                        check_finite_update(self.NAME, f'{name}.{key}', inner[key],
+                                            check_width=False)
         self.on_parameters_changed(keys)
 
     def on_parameters_changed(self, keys: list[str]) -> None:
@@ -282,14 +286,17 @@ class PbrtTexture:
         return f'{self.NAME}[' + ', '.join(parts) + ']'
 
 
-def check_finite_update(plugin: str, name: str, value, what: str = '') -> None:
+def check_finite_update(plugin: str, name: str, value, what: str = '',
+                        check_width: bool = True) -> None:
     """A value set through ``mi.traverse`` must be one number (or colour), as at construction
     (a wider array failed inside Dr.Jit's call of the texture), and finite (a NaN or inf
     parameter would put NaN or inf in every image): else an error naming the fix (the value
     stays set until a valid one replaces it). The finiteness check is skipped, as the texels'
     checks are, for values with gradients (an optimiser's step: reading them back would cost a
-    synchronisation per step) and while ``dr.freeze`` records (which cannot read values back)."""
-    if dr.width(value) != 1:
+    synchronisation per step) and while ``dr.freeze`` records (which cannot read values back).
+    ``check_width`` false: a nested Mitsuba texture's parameter, whose width is its own business
+    (a spectrum's table has several values)."""
+    if check_width and dr.width(value) != 1:
         raise PluginError(f'{plugin}: parameter "{name}": a value of width {dr.width(value)} '
                           f'set through mi.traverse; accepted values: one number or colour '
                           f'(width 1; set one and call params.update() again)')

@@ -38,10 +38,12 @@ and their value as float; RGB images give colours, and their luminance as float 
 (parity with ``bitmap``, negative EXR texels survive).
 
 Filters and footprints: ``point`` and ``bilinear`` look up the level the footprint selects, as
-pbrt-v4 does. Under Mitsuba's own integrators the footprint is always 0 (they compute no texture
-differentials), so they behave exactly as ``bitmap`` ``nearest``/``bilinear`` and their pyramid
-holds level 0 alone; ``pbrt_path`` (or calling ``tex.prepare_differentials()``) builds the other
-levels, and so does ``params.update()`` once gradients are enabled on ``data``. ``trilinear`` and
+pbrt-v4 does, once the texture is prepared for differentials (``pbrt_path`` calls
+``tex.prepare_differentials()``, which builds the other levels); before that they read level 0
+whatever the footprint and whatever levels the pyramid holds (``params.update()`` builds them
+once gradients are enabled on ``data``, and so may another texture of the same file). Under
+Mitsuba's own integrators the footprint is always 0 (they compute no texture differentials), so
+they behave exactly as ``bitmap`` ``nearest``/``bilinear``. ``trilinear`` and
 ``ewa`` build every level at once. With zero differentials every filter is a bilinear lookup at
 level 0 (``point``: the nearest texel).
 

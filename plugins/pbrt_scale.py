@@ -6,8 +6,8 @@
 | scale | float, texture | 1 | the factor (evaluated as a float texture, so an rgb value is refused) | yes |
 
 Where ``scale`` is 0 the result is 0 and ``tex`` is not evaluated (pbrt-v4), so an infinite or NaN
-``tex`` there cannot leak into the image — unless ``scale`` carries gradients, whose derivative
-there is ``tex``. A product beyond float32's range (``scale`` 3e38 times 2)
+``tex`` there cannot leak into the image; where ``scale`` carries gradients, ``tex`` is read there
+too (the derivative is ``tex``; 0 where ``tex`` is not finite). A product beyond float32's range (``scale`` 3e38 times 2)
 is float32's largest finite value of that sign, not inf.
 """
 
@@ -31,7 +31,10 @@ class Plugin(PbrtTexture):
         differentiated = dr.grad_enabled(sc)
         value = self.nested_eval('tex', si, kind, active & (nonzero | differentiated))
         out = dr.select(nonzero, finite_range(value * sc), 0)
-        return dr.replace_grad(out, value * sc) if differentiated else out
+        if not differentiated:
+            return out
+        product = value * sc            # (a non-finite tex where the scale is 0: derivative 0)
+        return dr.replace_grad(out, dr.select(dr.isfinite(product), product, out))
 
     def mean(self):
         return finite_range(mi.Float(nested_mean(self._nested['tex'])
