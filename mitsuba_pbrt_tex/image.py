@@ -49,7 +49,7 @@ import mitsuba as mi
 import numpy as np
 
 from .cache import BuildOnceCache
-from .mipmap import TEXEL_LIMIT, Pyramid, build_pyramid
+from .mipmap import TEXEL_LIMIT, Pyramid, build_pyramid, may_wait_for_kernels
 
 
 class ImageError(ValueError):
@@ -333,8 +333,8 @@ def release_build_temporaries(pyramid: Pyramid) -> None:
     """After building a large pyramid: wait for the build's kernels and flush Dr.Jit's
     allocation cache, which would otherwise keep the build's temporaries (the RGBA copy that the
     levels' buffer replaces, the half-downsampled levels: 1.4× the image for RGB) resident until
-    something reuses them."""
-    if pyramid.nbytes() >= RELEASE_BYTES:
+    something reuses them. On the main thread only (:func:`~.mipmap.may_wait_for_kernels`)."""
+    if pyramid.nbytes() >= RELEASE_BYTES and may_wait_for_kernels():
         import drjit as dr
         dr.sync_thread()
         dr.flush_malloc_cache()
