@@ -286,8 +286,7 @@ class PbrtTexture:
         return f'{self.NAME}[' + ', '.join(parts) + ']'
 
 
-def check_finite_update(plugin: str, name: str, value, what: str = '',
-                        check_width: bool = True) -> None:
+def check_finite_update(plugin: str, name: str, value, check_width: bool = True) -> None:
     """A value set through ``mi.traverse`` must be one number (or colour), as at construction
     (a wider array failed inside Dr.Jit's call of the texture), and finite (a NaN or inf
     parameter would put NaN or inf in every image): else an error naming the fix (the value
@@ -304,7 +303,7 @@ def check_finite_update(plugin: str, name: str, value, what: str = '',
         return
     v = dr.detach(value)
     if not bool(dr.all(dr.isfinite(v), axis=None)):
-        raise PluginError(f'{plugin}: parameter "{name}": value {_short(v)}{what} set through '
+        raise PluginError(f'{plugin}: parameter "{name}": value {_short(v)} set through '
                           f'mi.traverse is not finite; accepted values: finite numbers (set one '
                           f'and call params.update() again)')
 

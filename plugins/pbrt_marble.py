@@ -50,7 +50,8 @@ N_SEGMENTS = len(COLORS) - 3
 
 
 def _colors():
-    """The control points, flat, as a device table (:func:`~mitsuba_pbrt_tex.noise.device_table`)."""
+    """The control points, flat, as a device table
+    (:func:`~mitsuba_pbrt_tex.noise.device_table`)."""
     return device_table('marble', lambda: mi.Float([c for rgb in COLORS for c in rgb]))
 
 

@@ -8,9 +8,9 @@
 
 ``(1 - amount)·tex1 + amount·tex2``; like pbrt-v4, ``tex1`` is not evaluated where amount = 1 and
 ``tex2`` not where amount = 0 (both are where the amount carries gradients: the derivative is
-``tex2 - tex1`` there too, 0 where the skipped one is not finite). Evaluated as ``tex1 + amount·(tex2 - tex1)``, exact where the
-two are equal whatever the amount; a result beyond float32's range is float32's largest finite
-value (``PbrtTexture.blend_nested``).
+``tex2 - tex1`` there too, 0 where the skipped one is not finite). Evaluated as
+``tex1 + amount·(tex2 - tex1)``, exact where the two are equal whatever the amount; a result
+beyond float32's range is float32's largest finite value (``PbrtTexture.blend_nested``).
 """
 
 import drjit as dr

@@ -7,8 +7,8 @@
 
 Where ``scale`` is 0 the result is 0 and ``tex`` is not evaluated (pbrt-v4), so an infinite or NaN
 ``tex`` there cannot leak into the image; where ``scale`` carries gradients, ``tex`` is read there
-too (the derivative is ``tex``; 0 where ``tex`` is not finite). A product beyond float32's range (``scale`` 3e38 times 2)
-is float32's largest finite value of that sign, not inf.
+too (the derivative is ``tex``; 0 where ``tex`` is not finite). A product beyond float32's range
+(``scale`` 3e38 times 2) is float32's largest finite value of that sign, not inf.
 """
 
 import drjit as dr
