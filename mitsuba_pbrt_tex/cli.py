@@ -120,6 +120,13 @@ def program() -> str:
     return script if script == 'mitsuba-pbrt-tex' else 'python -m mitsuba_pbrt_tex'
 
 
+def command_parser(command: str, doc: str) -> argparse.ArgumentParser:
+    """The parser of ``<program> <command>`` (a benchmark's or a demo's options): its usage line
+    as the user started us, its description the first paragraph of ``doc``."""
+    return argparse.ArgumentParser(prog=f'{program()} {command}',
+                                   description=doc.split('\n\n')[0])
+
+
 def parser() -> argparse.ArgumentParser:
     ap = _Parser(prog=program(), description="PBRT's texture system as Mitsuba 3 plugins.")
     sub = ap.add_subparsers(dest='command', required=True)

@@ -220,9 +220,7 @@ class PbrtTexture:
         t2 = self.nested_eval('tex2', si, kind, active & (use2 | differentiated))
         both = dr.fma(amount, t2 - t1, t1)
         out = finite_range(dr.select(use1, dr.select(use2, both, t1), t2))
-        if not differentiated:
-            return out
-        return dr.replace_grad(out, dr.select(dr.isfinite(both), both, out))
+        return derivative_unskipped(out, both) if differentiated else out
 
     # ------------------------------------------------------------------ Mitsuba interface
     def mean(self):
@@ -263,15 +261,15 @@ class PbrtTexture:
         keys = list(keys or [])
         for name in keys or [*self._values, *self._nested]:
             if name in self._values:
-                check_finite_update(self.NAME, name, self._values[name][0])
+                check_value_update(self.NAME, name, self._values[name][0])
             elif name in self._nested and not self._nested[name].is_spatially_varying():
                 # a float or rgb value (Mitsuba's uniform/srgb texture): its parameters (not its
                 # mean, which overflows for finite channels of 2e38)
                 inner = mi.traverse(self._nested[name])
                 for key in inner.keys():
                     if dr.is_jit_v(type(inner[key])):
-                        check_finite_update(self.NAME, f'{name}.{key}', inner[key],
-                                            check_width=False)
+                        check_value_update(self.NAME, f'{name}.{key}', inner[key],
+                                           check_width=False)
         self.on_parameters_changed(keys)
 
     def on_parameters_changed(self, keys: list[str]) -> None:
@@ -286,7 +284,7 @@ class PbrtTexture:
         return f'{self.NAME}[' + ', '.join(parts) + ']'
 
 
-def check_finite_update(plugin: str, name: str, value, check_width: bool = True) -> None:
+def check_value_update(plugin: str, name: str, value, check_width: bool = True) -> None:
     """A value set through ``mi.traverse`` must be one number (or colour), as at construction
     (a wider array failed inside Dr.Jit's call of the texture), and finite (a NaN or inf
     parameter would put NaN or inf in every image): else an error naming the fix (the value
@@ -319,6 +317,14 @@ def _short(obj) -> str:
 
 #: float32's largest finite value
 FLOAT32_MAX = 3.4028234663852886e38
+
+
+def derivative_unskipped(value, unskipped):
+    """``value`` (pbrt's, which skipped a lookup where its weight is 0) differentiated as
+    ``unskipped`` (the same formula with every lookup made): the derivative with respect to the
+    weight is not 0 where the lookup was skipped. 0 where ``unskipped`` is not finite (a
+    skipped texture of inf there: one optimiser step would turn an inf derivative into NaN)."""
+    return dr.replace_grad(value, dr.select(dr.isfinite(unskipped), unskipped, value))
 
 
 def finite_range(x):

@@ -10,7 +10,7 @@
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.texture import PbrtTexture, check_finite_update
+from mitsuba_pbrt_tex.texture import PbrtTexture, check_value_update
 
 
 class Plugin(PbrtTexture):
@@ -44,7 +44,7 @@ class Plugin(PbrtTexture):
 
     def on_parameters_changed(self, keys):
         if not keys or 'value' in keys:
-            check_finite_update(self.NAME, 'value', self.value)
+            check_value_update(self.NAME, 'value', self.value)
 
     def to_string(self):
         return f'{self.NAME}[value={self.value}]'

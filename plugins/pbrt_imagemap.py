@@ -424,14 +424,13 @@ class Plugin(PbrtTexture):
         value. A reduction's temporaries go back, as a large build's do."""
         if self.invert:
             self._mean = _luminance_mean(self.data.array, self.channels, self.scale, True)
-        else:
-            cache = self._shared if self._shared is not None else self
-            if getattr(cache, 'texel_mean', None) is None:
-                cache.texel_mean = _luminance_mean(self.data.array, self.channels, 1.0, False)
-                release_build_temporaries(self.pyramid)
-            self._mean = cache.texel_mean * self.scale
+            release_build_temporaries(self.pyramid)
             return
-        release_build_temporaries(self.pyramid)
+        cache = self._shared if self._shared is not None else self
+        if getattr(cache, 'texel_mean', None) is None:
+            cache.texel_mean = _luminance_mean(self.data.array, self.channels, 1.0, False)
+            release_build_temporaries(self.pyramid)
+        self._mean = cache.texel_mean * self.scale
 
     def resolution(self):
         return mi.ScalarVector2i(int(self.data.shape[1]), int(self.data.shape[0]))

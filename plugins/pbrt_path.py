@@ -61,6 +61,7 @@ Samples per pixel: the footprint uses the spp of the ``mi.render`` call, or the 
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import NamedTuple
 
@@ -237,13 +238,19 @@ class Plugin:
         return TraceInputs(needs, scale, camera)
 
     # ------------------------------------------------------------------ rendering
+    @contextlib.contextmanager
+    def _rendering(self, scene, sensor, seed):
+        """:meth:`begin`'s view of the sensor for one of Mitsuba's ``render`` methods; after it
+        a ``sample()`` from elsewhere gets foreign rays."""
+        try:
+            yield self.begin(scene, sensor, seed)
+        finally:
+            self._handover = None
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """``ADIntegrator.render`` on :meth:`begin`'s view of the sensor."""
-        try:
-            return self._pbrt_base.render(self, scene, self.begin(scene, sensor, seed), seed,
-                                          spp, develop, evaluate)
-        finally:
-            self._handover = None       # a later sample() from elsewhere gets foreign rays
+        with self._rendering(scene, sensor, seed) as view:
+            return self._pbrt_base.render(self, scene, view, seed, spp, develop, evaluate)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         """``RBIntegrator.render_forward`` on :meth:`begin`'s view of the sensor, with the
@@ -253,20 +260,16 @@ class Plugin:
                    if hasattr(node, 'carry_forward_gradient')
                    for v in node.carry_forward_gradient()]
         try:
-            return self._pbrt_base.render_forward(self, scene, params,
-                                                  self.begin(scene, sensor, seed), seed, spp)
+            with self._rendering(scene, sensor, seed) as view:
+                return self._pbrt_base.render_forward(self, scene, params, view, seed, spp)
         finally:
-            self._handover = None
             for v in carried:
                 dr.clear_grad(v)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         """``RBIntegrator.render_backward`` on :meth:`begin`'s view of the sensor."""
-        try:
-            return self._pbrt_base.render_backward(self, scene, params, grad_in,
-                                                   self.begin(scene, sensor, seed), seed, spp)
-        finally:
-            self._handover = None
+        with self._rendering(scene, sensor, seed) as view:
+            return self._pbrt_base.render_backward(self, scene, params, grad_in, view, seed, spp)
 
     def begin(self, scene, sensor, seed=0):
         """Where a render starts: its :class:`~mitsuba_pbrt_tex.render_scope.RenderScope`, and

@@ -14,7 +14,8 @@ too (the derivative is ``tex``; 0 where ``tex`` is not finite). A product beyond
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_pbrt_tex.texture import FLOAT, PbrtTexture, finite_range, nested_mean
+from mitsuba_pbrt_tex.texture import (FLOAT, PbrtTexture, derivative_unskipped, finite_range,
+                                      nested_mean)
 
 
 class Plugin(PbrtTexture):
@@ -31,10 +32,7 @@ class Plugin(PbrtTexture):
         differentiated = dr.grad_enabled(sc)
         value = self.nested_eval('tex', si, kind, active & (nonzero | differentiated))
         out = dr.select(nonzero, finite_range(value * sc), 0)
-        if not differentiated:
-            return out
-        product = value * sc            # (a non-finite tex where the scale is 0: derivative 0)
-        return dr.replace_grad(out, dr.select(dr.isfinite(product), product, out))
+        return derivative_unskipped(out, value * sc) if differentiated else out
 
     def mean(self):
         return finite_range(mi.Float(nested_mean(self._nested['tex'])

@@ -16,7 +16,6 @@ levels or run EWA — the cost of filtering is then part of what is measured.
 
 from __future__ import annotations
 
-import argparse
 import os
 
 CASES = (
@@ -73,9 +72,8 @@ def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} bench integrator',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('bench integrator', __doc__)
     ap.add_argument('--spp', type=int, default=16, help='samples per pixel of each render')
     ap.add_argument('--repeats', type=int, default=5,
                     help='timed renders per configuration after a warm-up (medians reported)')

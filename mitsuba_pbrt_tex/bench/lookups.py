@@ -25,7 +25,6 @@ holding its level costs.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import math
 
@@ -218,9 +217,8 @@ def cache_lines_ewa(size, u, v, d0, d1, max_anisotropy):
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} bench lookups',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('bench lookups', __doc__)
     ap.add_argument('--size', type=int, default=1024, help='texture resolution (square)')
     ap.add_argument('--count', type=int, default=1 << 20, help='lookups per batch')
     ap.add_argument('--anisotropy', type=float, default=8.0, help='major/minor axis ratio')

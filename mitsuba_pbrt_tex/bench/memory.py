@@ -21,7 +21,6 @@ reports the resident memory after each (the cache must not keep textures nobody 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -136,9 +135,8 @@ def run(size: int = 2048, reloads: int = 5, kinds=('bitmap', 'bilinear', 'ewa'),
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} bench memory',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('bench memory', __doc__)
     ap.add_argument('--size', type=int, default=2048, help='image side in pixels (default 2048; '
                     '8192 is a 768 MiB image, with peaks near 3 GiB)')
     ap.add_argument('--reloads', type=int, default=5,

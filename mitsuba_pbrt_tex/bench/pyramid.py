@@ -17,7 +17,6 @@ and the memory of each pyramid relative to the original image.
 
 from __future__ import annotations
 
-import argparse
 import math
 
 import numpy as np
@@ -157,9 +156,8 @@ def run(lookups=300, seed=3, out=print):
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} bench pyramid',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('bench pyramid', __doc__)
     ap.add_argument('--lookups', type=int, default=300,
                     help='random lookups per test image for the RMSE columns')
     args = ap.parse_args(argv)

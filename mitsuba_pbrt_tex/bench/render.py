@@ -28,7 +28,6 @@ Outputs in ``--out``: ``results.csv``, ``results.md`` (a table and summary lines
 
 from __future__ import annotations
 
-import argparse
 import csv
 import hashlib
 import json
@@ -756,9 +755,8 @@ def charts(rows, out_dir):
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} bench render',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('bench render', __doc__)
     ap.add_argument('--scenes', nargs='*', default=None,
                     help='subset of: ' + ', '.join(c.name for c in cases(work_dir=None)))
     ap.add_argument('--quick', action='store_true', help='tiny resolution and few spp (smoke test)')

@@ -12,7 +12,6 @@ image's. Writes ``<out>/horizon.png`` and ``<out>/horizon.md`` (the times).
 
 from __future__ import annotations
 
-import argparse
 import os
 import textwrap
 import time
@@ -105,9 +104,8 @@ def _compose(path, left, right, left_title, right_title):
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} demo horizon',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('demo horizon', __doc__)
     ap.add_argument('--out', default='renders', help='output folder (default renders)')
     ap.add_argument('--width', type=positive_int, default=480, help='image width (pixels)')
     ap.add_argument('--height', type=positive_int, default=270, help='image height (pixels)')

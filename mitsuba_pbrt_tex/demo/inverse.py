@@ -23,7 +23,6 @@ time per iteration and peak memory.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import gc
 import os
@@ -246,9 +245,8 @@ def plots(history, truth, finals, target_view, out_dir):
 
 
 def main(argv=None) -> int:
-    from ..cli import program
-    ap = argparse.ArgumentParser(prog=f'{program()} demo inverse',
-                                 description=__doc__.split('\n\n')[0])
+    from ..cli import command_parser
+    ap = command_parser('demo inverse', __doc__)
     ap.add_argument('--out', default='demo-out', help='output folder (default demo-out)')
     ap.add_argument('--iterations', type=positive_int, default=None,
                     help='optimisation steps (default 60; 3 with --quick)')
