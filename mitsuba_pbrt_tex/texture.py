@@ -229,11 +229,24 @@ class PbrtTexture:
     def is_spatially_varying(self) -> bool:
         return True
 
+    def nested_vary(self) -> bool:
+        """Whether any nested texture is spatially varying: a composite's own answer, where its
+        value is a function of the nested values alone (so that ``pbrt_scale`` or ``pbrt_mix``
+        of constants can be a ``constant`` or ``directional`` emitter's radiance, as ``rgb``
+        can)."""
+        return any(t.is_spatially_varying() for t in self._nested.values())
+
     def max(self):
         """Not implemented, as for Mitsuba's own textures (``bitmap``, ``checkerboard``): an error
         saying so, where the unbound method was a raw "pure virtual function" error."""
         raise RuntimeError(f'{self.NAME}: max() is not implemented (nor is it for Mitsuba\'s '
                            f'bitmap or checkerboard)')
+
+    def spectral_resolution(self):
+        """Not implemented, as for every Mitsuba texture: the same error in this texture's name
+        (the unbound method was a raw "pure virtual function" error)."""
+        raise RuntimeError(f'{self.NAME}: spectral_resolution() is not implemented (nor is it '
+                           f'for Mitsuba\'s bitmap, checkerboard or srgb)')
 
     def sample_spectrum(self, si, sample, active=True):
         """RGB and mono variants sample no wavelengths: (empty wavelengths, the value), as

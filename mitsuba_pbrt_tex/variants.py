@@ -26,14 +26,27 @@ def support_problem(variant: str | None) -> str | None:
     """Why ``variant`` is unsupported, or None when it is supported."""
     if variant is None:
         return 'no Mitsuba variant is set (call mi.set_variant("llvm_ad_rgb") first)'
-    if variant.startswith('scalar'):
-        return ('scalar variants are not supported: the lookups are vectorised Dr.Jit kernels; '
-                'use the JIT variant "%s" instead' % variant.replace('scalar', 'llvm_ad'))
-    if 'spectral' in variant:
-        return ('spectral variants are not supported (filtered RGB cannot be spectrally '
-                'upsampled after filtering); use "%s" or "%s"'
-                % (variant.split('_spectral')[0] + '_rgb', variant.split('_spectral')[0] + '_mono'))
-    return None
+    scalar, spectral = variant.startswith('scalar'), 'spectral' in variant
+    if not (scalar or spectral):
+        return None
+    why = []
+    if scalar:
+        why.append('scalar variants are not supported: the lookups are vectorised Dr.Jit kernels')
+    if spectral:
+        why.append('spectral variants are not supported (filtered RGB cannot be spectrally '
+                   'upsampled after filtering)')
+    return '; '.join(why) + '; use %s' % ' or '.join(f'"{v}"' for v in supported_instead(variant))
+
+
+def supported_instead(variant: str) -> list:
+    """The supported variants closest to ``variant``: its JIT backend (``llvm_ad`` for scalar
+    ones) in RGB and mono, polarized if it is — the ones this Mitsuba build has, where it has
+    any."""
+    backend = 'cuda_ad' if variant.startswith('cuda') else 'llvm_ad'
+    polarized = '_polarized' if variant.endswith('_polarized') else ''
+    close = [f'{backend}_{colour}{polarized}' for colour in ('rgb', 'mono')]
+    built = [v for v in close if v in mi.variants()]
+    return built or close
 
 
 def require_supported(plugin: str) -> None:

@@ -31,6 +31,9 @@ class Plugin(PbrtTexture):
         amount = self.nested_eval('amount', si, FLOAT, active)
         return self.blend_nested(amount, si, kind, active)
 
+    def is_spatially_varying(self):
+        return self.nested_vary()
+
     def mean(self):
         a = nested_mean(self._nested['amount'])
         m1 = nested_mean(self._nested['tex1'])

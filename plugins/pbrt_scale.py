@@ -34,6 +34,9 @@ class Plugin(PbrtTexture):
         out = dr.select(nonzero, finite_range(value * sc), 0)
         return derivative_unskipped(out, value * sc) if differentiated else out
 
+    def is_spatially_varying(self):
+        return self.nested_vary()
+
     def mean(self):
         return finite_range(mi.Float(nested_mean(self._nested['tex'])
                                      * nested_mean(self._nested['scale'])))

@@ -173,3 +173,46 @@ def test_max_is_not_implemented_as_for_mitsubas_textures():
         with pytest.raises(RuntimeError) as e:
             mi.load_dict({'type': name, **params}).max()
         assert f'{name}: max() is not implemented' in str(e.value), str(e.value)
+
+
+def test_spectral_resolution_is_not_implemented_as_for_mitsubas_textures():
+    """Every Mitsuba texture raises "Texture::spectral_resolution(): not implemented!"; every
+    pbrt_* texture says the same in its own name, where it raised nanobind's raw "tried to call
+    a pure virtual function" (found in a user trial)."""
+    from plugin_cases import CASES
+    for builtin in ({'type': 'checkerboard'}, {'type': 'srgb', 'color': [0.1, 0.2, 0.3]}):
+        with pytest.raises(RuntimeError, match='not implemented'):
+            mi.load_dict(builtin).spectral_resolution()
+    for name, (params, _) in CASES.items():
+        with pytest.raises(RuntimeError) as e:
+            mi.load_dict({'type': name, **params}).spectral_resolution()
+        assert f'{name}: spectral_resolution() is not implemented' in str(e.value), str(e.value)
+
+
+@pytest.mark.parametrize('emitter,key', [('constant', 'radiance'), ('directional', 'irradiance')])
+def test_composites_of_constants_light_as_rgb_does(emitter, key):
+    """``pbrt_scale`` and ``pbrt_mix`` of values that do not vary over the surface are not
+    spatially varying themselves, so they can be the radiance of an emitter that takes only
+    such a texture (refused before: "Expected a non-spatially varying ..." — found in a user
+    trial): the image equals the one lit by the ``rgb`` of the same value. Of an image they
+    stay spatially varying."""
+    from plugin_cases import CASES
+    value = [0.3 * 0.5 * 2, 0.6 * 0.5 * 2, 0.9 * 0.5 * 2]     # the composites below
+    scale = {'type': 'pbrt_scale', 'tex': {'type': 'rgb', 'value': [0.3, 0.6, 0.9]},
+             'scale': {'type': 'pbrt_mix', 'tex1': 0.5, 'tex2': 1.5, 'amount': 0.5}}
+    images = []
+    for radiance in ({'type': 'rgb', 'value': value}, scale):
+        scene = mi.load_dict({
+            'type': 'scene', 'integrator': {'type': 'path'},
+            'sensor': {'type': 'perspective', 'fov': 60, 'film': {
+                'type': 'hdrfilm', 'width': 16, 'height': 12, 'rfilter': {'type': 'box'}},
+                'to_world': mi.ScalarTransform4f().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0])},
+            'plane': {'type': 'rectangle', 'bsdf': {'type': 'diffuse'}},
+            'light': {'type': emitter, key: radiance,
+                      **({'direction': [0, 0, -1]} if emitter == 'directional' else {})}})
+        images.append(A(mi.render(scene, spp=4, seed=1)))
+    assert images[0].max() > 0
+    assert np.abs(images[1] - images[0]).max() <= 1e-6 * images[0].max()  # float32 rounding
+    image = {'type': 'pbrt_imagemap', **CASES['pbrt_imagemap'][0]}
+    assert mi.load_dict({'type': 'pbrt_scale', 'tex': image}).is_spatially_varying()
+    assert mi.load_dict({'type': 'pbrt_mix', 'amount': image}).is_spatially_varying()
