@@ -50,7 +50,7 @@ import numpy as np
 
 from .lookup_order import MIN_LEVEL_BYTES, in_tile_order
 from .mipmap import ad_alias
-from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
+from .wrap import adjacent_wrapped, texel_coord, wrap_2d
 
 LUT_SIZE = 128
 ALPHA = 2.0
@@ -163,8 +163,8 @@ class EWAFilter:
         """pbrt's ellipse at the level of ``view``, in its texel coordinates, and its bounding
         box."""
         w, h = view.size
-        s = sanitize_coord(dr.fma(st.x, w, -0.5))
-        t = sanitize_coord(dr.fma(st.y, h, -0.5))
+        s = texel_coord(st.x, w, mip.wrap, -0.5)
+        t = texel_coord(st.y, h, mip.wrap, -0.5)
         ds0, dt0 = dst0.x * w, dst0.y * h
         ds1, dt1 = dst1.x * w, dst1.y * h
 

@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .wrap import sanitize_coord
+from .wrap import texel_coord
 
 #: Finest lattice: 2^MIN_LATTICE level-0 texels (footprints below it are points for the sum).
 MIN_LATTICE = -4
@@ -207,8 +207,8 @@ def _lattice(mip, st, d0, d1, g, h, kernel, active) -> _Lattice:
     sy = dr.select(fine, H / spacing, lh)
     ox = dr.select(fine, 0.5 / spacing, 0.5)
     oy = ox
-    X = sanitize_coord(st.x * sx - ox)
-    Y = sanitize_coord(st.y * sy - oy)
+    X = texel_coord(st.x, sx, mip.wrap, -ox)
+    Y = texel_coord(st.y, sy, mip.wrap, -oy)
     # footprint Jacobian in lattice units
     l00, l01 = d0.x * sx, d1.x * sx
     l10, l11 = d0.y * sy, d1.y * sy

@@ -71,7 +71,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .wrap import adjacent_wrapped, sanitize_coord, wrap_2d
+from .wrap import adjacent_wrapped, texel_coord, wrap_2d
 
 FILTERS = ('point', 'bilinear', 'trilinear', 'ewa', 'box')
 #: Texel values are limited to ±TEXEL_LIMIT: a filter's weighted sums of values near float32's
@@ -324,8 +324,8 @@ class MIPMap:
     def point(self, level, st, active):
         view = self.view(level)
         w, h = view.size
-        x = dr.floor(sanitize_coord(st.x * w))
-        y = dr.floor(sanitize_coord(st.y * h))
+        x = dr.floor(texel_coord(st.x, w, self.wrap))
+        y = dr.floor(texel_coord(st.y, h, self.wrap))
         return self.fetch(view, x, y, active)
 
     def corners(self, level, st, active):
@@ -334,8 +334,8 @@ class MIPMap:
         level's size ``(w, h)``."""
         view = self.view(level)
         w, h = view.size
-        px = sanitize_coord(dr.fma(st.x, w, -0.5))
-        py = sanitize_coord(dr.fma(st.y, h, -0.5))
+        px = texel_coord(st.x, w, self.wrap, -0.5)
+        py = texel_coord(st.y, h, self.wrap, -0.5)
         x0, y0 = dr.floor(px), dr.floor(py)
         wx1, wy1 = px - x0, py - y0
         if self.wrap == 'octahedralsphere':            # couples the axes: wrap per tap

@@ -22,7 +22,8 @@ import mitsuba as mi
 WRAP_MODES = ('repeat', 'black', 'clamp', 'mirror', 'octahedralsphere')
 
 #: Texel coordinates are clamped to this magnitude before wrapping (keeps every integer exact
-#: in float32 and in int32; far outside [0,1] only the wrap matters anyway).
+#: in float32 and in int32); ``repeat`` and ``mirror`` coordinates beyond it are first taken
+#: from the texture coordinate moved by whole periods (:func:`texel_coord`).
 COORD_LIMIT = float(2 ** 22)
 
 
@@ -97,3 +98,18 @@ def adjacent_wrapped(x0, n, mode: str, inv_n=None):
 def sanitize_coord(x):
     """NaN/inf → 0, and clamp to ±COORD_LIMIT (texel units)."""
     return dr.clip(dr.select(dr.isfinite(x), x, 0.0), -COORD_LIMIT, COORD_LIMIT)
+
+
+def texel_coord(st, n, mode: str, offset=0.0):
+    """The texel coordinate ``st·n + offset`` of texture coordinate ``st`` (``n`` texels or
+    lattice points per unit), sanitized (:func:`sanitize_coord`). Where it lies beyond
+    ±COORD_LIMIT, ``repeat`` and ``mirror`` take it from ``st`` moved by whole periods (1, 2)
+    first, so that the wrap still tiles there: the clamp alone sent every lookup beyond it to
+    the same texel (a 64-texel-wide image at u = 65536 + …; found in a user trial). Within the
+    limit the coordinate is the product itself, rounded as Mitsuba's ``bitmap`` rounds it."""
+    x = dr.fma(st, n, offset)
+    if mode in ('repeat', 'mirror'):
+        period = 1.0 if mode == 'repeat' else 2.0
+        moved = dr.fma(st - dr.floor(st * (1.0 / period)) * period, n, offset)
+        x = dr.select(dr.abs(x) > COORD_LIMIT, moved, x)
+    return sanitize_coord(x)

@@ -171,3 +171,54 @@ def test_wrap_1d_refuses_modes_that_do_not_wrap_one_axis_alone(mode):
     and ``wrap_1d`` refuses them instead of returning an index without its mask."""
     with pytest.raises(ValueError):
         wrap_1d(mi.Float([-1.0, 2.0, 5.0]), 4, mode)
+
+
+@pytest.mark.parametrize('mode', ['repeat', 'mirror'])
+def test_lookups_keep_tiling_beyond_the_coordinate_clamp(mode, rng):
+    """Texture coordinates whose texel coordinate lies beyond ±2^22 (a 64×8 image at u = 65536
+    + …, v = 2^19 + …) read what the same lookup reads whole periods (65536, 2^19: even, so
+    for mirror too) nearer the image — the wrap's own symmetry, for every filter (with
+    footprints at level 0 and at level 1) and the Gaussian pixel kernel; point and bilinear
+    also equal Mitsuba's ``bitmap`` there. Every such lookup read one texel before (the clamp
+    came before the wrap; found in a user trial). The coordinates are exact in float32 (u a
+    multiple of 1/128, v of 1/16), so the two lookups see the same position: equal to float32
+    rounding of the weights (1e-6 of texels in [0, 1])."""
+    from mitsuba_pbrt_tex import gauss
+    from mitsuba_pbrt_tex.mipmap import MIPMap, build_pyramid
+    img = rng.random((8, 64, 3)).astype(np.float32)
+    n = 256
+    fu = rng.integers(0, 128, n) / 128.0
+    fv = rng.integers(0, 16, n) / 16.0
+    near = np.stack([fu, fv], 1)
+    far = np.stack([65536.0 + fu, 2.0 ** 19 + fv], 1)
+    assert (np.abs(far[:, 0] * 64) >= 2 ** 22).all() and (np.abs(far[:, 1] * 8) >= 2 ** 22).all()
+
+    def lookup(tex, uv, d):
+        si = make_si(uv)
+        si.duv_dx = mi.Vector2f(d / 64, 0.3 * d / 8)
+        si.duv_dy = mi.Vector2f(-0.2 * d / 64, d / 8)
+        return A(tex.eval(si))
+
+    for filt in ('point', 'bilinear', 'trilinear', 'ewa', 'box'):
+        tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'raw': True,
+                            'filter': filt, 'wrap': mode})
+        tex.prepare_differentials()
+        for d in (0.0, 0.7, 2.5):
+            np.testing.assert_allclose(lookup(tex, far, d), lookup(tex, near, d), atol=1e-6,
+                                       err_msg=f'{filt}, footprint {d}')
+    for filt, kind in (('point', 'nearest'), ('bilinear', 'bilinear')):
+        ours = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'raw': True,
+                             'filter': filt, 'wrap': mode})
+        theirs = mi.load_dict({'type': 'bitmap', 'data': mi.TensorXf(img), 'raw': True,
+                               'filter_type': kind, 'wrap_mode': mode})
+        np.testing.assert_allclose(lookup(ours, far, 0.0), A(theirs.eval(make_si(far))),
+                                   atol=1e-6, err_msg=filt)
+    mip = MIPMap(build_pyramid(mi.TensorXf(img), True), mode)
+    rfilter = mi.load_dict({'type': 'gaussian'})
+
+    def kernel(uv):
+        return A(gauss.pixel_filter(
+            mip, mi.Point2f(uv[:, 0], uv[:, 1]), mi.Vector2f(1.5 / 64, 0.2 / 8),
+            mi.Vector2f(-0.3 / 64, 1.2 / 8), mi.Float(0.02), mi.Float(-0.03),
+            gauss.FilmKernel(0.5, 2.0, rfilter), True))
+    np.testing.assert_allclose(kernel(far), kernel(near), atol=1e-6)
