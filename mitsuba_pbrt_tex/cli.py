@@ -11,15 +11,24 @@ import sys
 DEBUG_ENV = 'MITSUBA_PBRT_TEX_DEBUG'
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: a whole number >= 1 (else argparse's one-line error, exit 2)."""
+def _whole_number(text: str, lowest: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f'expected a whole number, got "{text}"') from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'must be >= 1, got {value}')
+    if value < lowest:
+        raise argparse.ArgumentTypeError(f'must be >= {lowest}, got {value}')
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (else argparse's one-line error, exit 2)."""
+    return _whole_number(text, 1)
+
+
+def non_negative_int(text: str) -> int:
+    """An argparse type: a whole number >= 0."""
+    return _whole_number(text, 0)
 
 
 def positive_float(text: str) -> float:
@@ -33,13 +42,59 @@ def positive_float(text: str) -> float:
     return value
 
 
+def positive_floats(text: str) -> tuple:
+    """An argparse type: comma-separated finite numbers > 0 (empty: none)."""
+    return tuple(positive_float(part) for part in text.split(',') if part.strip())
+
+
+def definition(text: str) -> tuple:
+    """An argparse type: ``NAME=VALUE`` (a scene parameter, as Mitsuba's ``-D``)."""
+    name, eq, value = text.partition('=')
+    if not eq or not name.strip() or not name.strip().replace('_', 'a').isalnum():
+        raise argparse.ArgumentTypeError(f'expected NAME=VALUE (a scene parameter, as in '
+                                         f'"-D spp=16"), got "{text}"')
+    return name.strip(), value
+
+
+def variant_name(text: str) -> str:
+    """An argparse type: a Mitsuba variant the plugins take and this machine runs."""
+    from .variants import variant_problem
+    problem = variant_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def output_folder(text: str) -> str:
+    """An argparse type: a folder to write into (made if missing): not a file, nor below one."""
+    path = os.path.abspath(text)
+    existing = path
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        where = 'is a file' if existing == path else f'is below "{existing}", a file'
+        raise argparse.ArgumentTypeError(f'"{text}" {where}, not a folder')
+    return text
+
+
+def output_file(text: str) -> str:
+    """An argparse type: a file to write, in a folder that exists."""
+    path = os.path.abspath(text)
+    if os.path.isdir(path):
+        raise argparse.ArgumentTypeError(f'"{text}" is a folder, not a file')
+    if not os.path.isdir(os.path.dirname(path)):
+        raise argparse.ArgumentTypeError(f'"{text}": its folder "{os.path.dirname(path)}" does '
+                                         f'not exist (or is a file)')
+    return text
+
+
 def _render(args) -> int:
     from .outputs import terminate_on_sigterm
     from .render import RenderError, render_file
     terminate_on_sigterm()
     try:
         info = render_file(args.scene, args.output, spp=args.spp, variant=args.variant,
-                           progress=not args.quiet)
+                           progress=not args.quiet, params=dict(args.define))
     except RenderError as e:
         print(f'error: {e}', file=sys.stderr)
         return 2
@@ -137,6 +192,9 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument('--spp', type=positive_int, default=None,
                    help='samples per pixel, >= 1 (default: the scene\'s)')
     r.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant (default llvm_ad_rgb)')
+    r.add_argument('-D', dest='define', metavar='NAME=VALUE', type=definition, action='append',
+                   default=[], help='set the scene parameter $NAME (over its <default>), as '
+                                    "Mitsuba's -D; repeatable")
     r.add_argument('-q', '--quiet', action='store_true', help='no progress display')
     r.set_defaults(func=_render)
 

@@ -86,18 +86,22 @@ def summary(name: str) -> str:
 
 def markdown(names=PLUGINS) -> str:
     """The README's plugin reference: one section and table per plugin."""
-    parts = []
+    parts, mappings = [], set()
     for name in names:
         parts.append(f'### `{name}`\n\n{summary(name)}\n')
         parts.append('| ' + ' | '.join(COLUMNS) + ' |')
         parts.append('|' + '---|' * len(COLUMNS))
         for r in plugin_rows(name, expand=False):
             if r.parameter in MAPPING_ROWS:
+                mappings.add(MAPPING_ROWS[r.parameter])
                 r = Row(r.parameter, '', '', 'see [Mappings](#mappings)', '')
             parts.append(f'| {r.parameter} | {r.type} | {r.default} | {r.meaning} | {r.differentiable} |')
         parts.append('')
-    parts.append('### Mappings\n')
+    if mappings:                        # (only the tables these plugins refer to)
+        parts.append('### Mappings\n')
     for title, which in (('2D mapping parameters', 0), ('3D mapping parameters', 1)):
+        if which not in mappings:
+            continue
         parts.append(f'{title}:\n')
         parts.append('| ' + ' | '.join(COLUMNS) + ' |')
         parts.append('|' + '---|' * len(COLUMNS))
@@ -137,6 +141,41 @@ def _replace_section(text: str, markers: tuple[str, str], body: str, path: str) 
     return re.sub(pattern, lambda m: markers[0] + '\n' + body + markers[1], text, flags=re.S)
 
 
+def _summary_scenes(summary: str) -> set:
+    """The scenes a benchmark summary has lines for (``- **scene**…``)."""
+    import re
+    return set(re.findall(r'^- \*\*([^*]+)\*\*', summary, flags=re.M))
+
+
+def _bench_summary(bench_results: str, readme: str) -> str:
+    """The summary of ``bench_results`` (a ``bench render`` results.md) for the README, or
+    ValueError where it is not a full run's: no summary, a ``--quick`` smoke test, or fewer
+    scenes than the README's summary has (a ``--scenes`` subset; splice it into the full
+    report first)."""
+    text = open(bench_results, encoding='utf-8').read()
+    parts = text.split('## Summary')
+    if len(parts) < 2:
+        raise ValueError(f'"{bench_results}" has no "## Summary" section (expected the '
+                         f'results.md of a full `bench render` run); nothing was changed')
+    if text.startswith(QUICK_MARK):
+        raise ValueError(f'"{bench_results}" is from `bench render --quick` (a smoke test, not a '
+                         f'measurement); nothing was changed')
+    summary = parts[1].strip()
+    import re
+    old = re.findall(re.escape(BENCH_MARKERS[0]) + '(.*?)' + re.escape(BENCH_MARKERS[1]),
+                     readme, flags=re.S)
+    missing = _summary_scenes(old[0]) - _summary_scenes(summary) if len(old) == 1 else set()
+    if missing:
+        raise ValueError(f'"{bench_results}" has no summary of {", ".join(sorted(missing))}, '
+                         f'which the README has (a run of some scenes: splice its rows into '
+                         f'the full report first); nothing was changed')
+    return summary
+
+
+#: How the results.md of ``bench render --quick`` begins.
+QUICK_MARK = 'Smoke test (--quick'
+
+
 def update_readme(path: str, bench_results: str | None = None) -> bool:
     """Rewrite README's generated sections: the plugin reference and (given the benchmark's
     ``results.md``) its summary lines. Raises ValueError (changing nothing) if a section's
@@ -144,11 +183,8 @@ def update_readme(path: str, bench_results: str | None = None) -> bool:
     text = open(path, encoding='utf-8').read()
     new = _replace_section(text, PLUGIN_MARKERS, markdown(), path)
     if bench_results:
-        parts = open(bench_results, encoding='utf-8').read().split('## Summary')
-        if len(parts) < 2:
-            raise ValueError(f'"{bench_results}" has no "## Summary" section (expected the '
-                             f'results.md of a full `bench render` run); nothing was changed')
-        new = _replace_section(new, BENCH_MARKERS, parts[1].strip() + '\n', path)
+        new = _replace_section(new, BENCH_MARKERS, _bench_summary(bench_results, new) + '\n',
+                               path)
     if new == text:
         return False
     with open(path, 'w', encoding='utf-8') as f:

@@ -44,16 +44,17 @@ def _candidates(value: str, folders: list[str]) -> list[str]:
     return [os.path.join(f, value) for f in folders] + [os.path.abspath(value)]
 
 
-def scene_inputs(scene_path: str) -> set[str]:
+def scene_inputs(scene_path: str, params: dict | None = None) -> set[str]:
     """Real paths of every existing file the scene XML may read, as Mitsuba's loader finds them:
-    ``<default>`` values substituted for ``$name`` in every attribute, ``<include>``d files
-    followed (recursively), and every attribute value looked up like the file resolver does
-    (``<path>`` folders, the scene's folder, the resolver's folders, the working directory).
-    Any attribute that names an existing file counts, whatever the parameter: protecting too
-    much only refuses an output name, protecting too little loses a user's file."""
+    ``params`` (the command line's ``-D``) or else ``<default>`` values substituted for
+    ``$name`` in every attribute, ``<include>``d files followed (recursively), and every
+    attribute value looked up like the file resolver does (``<path>`` folders, the scene's
+    folder, the resolver's folders, the working directory). Any attribute that names an existing
+    file counts, whatever the parameter: protecting too much only refuses an output name,
+    protecting too little loses a user's file."""
     scene_path = os.path.abspath(scene_path)
     found: set[str] = {os.path.realpath(scene_path)}
-    defaults: dict[str, str] = {}
+    defaults: dict[str, str] = dict(params or {})
     extra_dirs: list[str] = []
     seen_docs: set[str] = set()
     roots = []
@@ -204,18 +205,10 @@ def error_line(e: BaseException) -> str:
 def _set_variant(variant: str) -> None:
     import mitsuba as mi
 
-    from .variants import backend_available, support_problem, usable_variants
-    if variant not in mi.variants():
-        raise RenderError(f'unknown --variant "{variant}"; variants of this Mitsuba build: '
-                          f'{", ".join(mi.variants())}')
-    problem = support_problem(variant)
+    from .variants import variant_problem
+    problem = variant_problem(variant)
     if problem:
         raise RenderError(f'--variant {variant}: {problem}')
-    if not backend_available(variant):
-        device = 'no CUDA device (GPU and driver)' if variant.startswith('cuda') else \
-            'no usable libLLVM (>= 17)'
-        raise RenderError(f'--variant {variant}: Dr.Jit finds {device} on this machine; '
-                          f'variants that work here: {", ".join(usable_variants()) or "none"}')
     try:
         mi.set_variant(variant)
     except Exception as e:
@@ -240,8 +233,11 @@ def _bar(done: int, total: int, elapsed: float, width: int = 30) -> str:
 
 
 def render_file(scene_path: str, out_path: str, spp: int | None = None,
-                variant: str = 'llvm_ad_rgb', progress: bool = True, stream=None) -> dict:
-    """Render ``scene_path`` to ``out_path`` (EXR) and a PNG beside it; returns timing info."""
+                variant: str = 'llvm_ad_rgb', progress: bool = True, stream=None,
+                params: dict | None = None) -> dict:
+    """Render ``scene_path`` to ``out_path`` (EXR) and a PNG beside it; returns timing info.
+    ``params``: values for the scene's ``$name`` parameters (over its ``<default>``\s), as
+    Mitsuba's ``-D name=value``."""
     import mitsuba as mi
 
     import mitsuba_pbrt_tex as mpt
@@ -261,14 +257,15 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
         check_writable(p)
     _set_variant(variant)
     mpt.register()
-    inputs = scene_inputs(scene_path)       # with this variant's file resolver
+    params = dict(params or {})
+    inputs = scene_inputs(scene_path, params)   # with this variant's file resolver
     check_not_inputs((exr_path, png_path), inputs)
     check_png_twin(png_path)
     from .image import files_read
     t0 = time.perf_counter()
     try:
         with files_read() as read:
-            scene = mi.load_file(scene_path)
+            scene = mi.load_file(scene_path, **params)
     except Exception as e:
         raise RenderError(error_line(e)) from None
     t_load = time.perf_counter() - t0

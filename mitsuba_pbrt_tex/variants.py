@@ -49,6 +49,23 @@ def supported_instead(variant: str) -> list:
     return built or close
 
 
+def variant_problem(variant: str) -> str | None:
+    """Why ``variant`` cannot be set here for these plugins — not in this Mitsuba build, not
+    supported (:func:`support_problem`), or its backend missing on this machine — or None."""
+    if variant not in mi.variants():
+        return (f'unknown variant "{variant}"; variants of this Mitsuba build: '
+                f'{", ".join(mi.variants())}')
+    problem = support_problem(variant)
+    if problem:
+        return problem
+    if not backend_available(variant):
+        device = 'no CUDA device (GPU and driver)' if variant.startswith('cuda') else \
+            'no usable libLLVM (>= 17)'
+        return (f'Dr.Jit finds {device} on this machine; variants that work here: '
+                f'{", ".join(usable_variants()) or "none"}')
+    return None
+
+
 def require_supported(plugin: str) -> None:
     problem = support_problem(mi.variant())
     if problem:

@@ -702,7 +702,7 @@ def test_cli_bad_input_battery(scenes):
         (['render', f'{d}/ok.xml', '-o', out, '--variant', 'llvm_ad_spectral'],
          ['--variant llvm_ad_spectral', 'spectral variants are not supported']),
         (['render', f'{d}/ok.xml', '-o', out, '--variant', 'nonsense'],
-         ['unknown --variant "nonsense"', 'llvm_ad_rgb']),
+         ['--variant nonsense: unknown variant "nonsense"', 'llvm_ad_rgb']),
         # sample counts
         (['render', f'{d}/ok.xml', '-o', out, '--spp', str(2**32)], ['--spp must be <= 4294967295']),
         (['render', f'{d}/ok.xml', '-o', out, '--spp', str(2**31)],

@@ -1,6 +1,7 @@
 """Benchmarks as smoke tests: they run end to end and produce their outputs (not timed tests)."""
 
 import csv
+import os
 import re
 
 import numpy as np
@@ -24,6 +25,16 @@ def test_render_benchmark_quick(tmp_path):
     # the pixel-footprint frame against pbrt_path + bilinear's, render against render
     frame = [s for s in summary if "frame over `pbrt_path` + bilinear's" in s]
     assert len(frame) == 1 and float(re.search(r'\*\*([0-9.]+)×', frame[0]).group(1)) > 0
+    # a smoke test's results cannot replace the README's benchmark summary (found in a user
+    # trial: --update-readme took them silently, 975 -> 932 lines)
+    import shutil
+    from mitsuba_pbrt_tex import docs
+    readme = tmp_path / 'README.md'
+    shutil.copy(os.path.join(os.path.dirname(__file__), '..', 'README.md'), readme)
+    before = readme.read_text()
+    with pytest.raises(ValueError, match='--quick'):
+        docs.update_readme(str(readme), str(tmp_path / 'results.md'))
+    assert readme.read_text() == before
     # the reference is cached: a second run does not render it again
     lines.clear()
     render.run(['grazing-checker'], quick=True, out_dir=str(tmp_path), log=lines.append)

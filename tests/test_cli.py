@@ -125,6 +125,34 @@ def test_render_never_overwrites_scene_or_inputs(small_scene, tmp_path, target):
     assert (tmp_path / 'tex.png').read_bytes() == before
 
 
+def test_render_sets_scene_parameters_and_protects_what_they_name(small_scene, tmp_path):
+    """``-D NAME=VALUE`` sets the scene's ``$NAME`` over its ``<default>`` (as Mitsuba's own
+    command line; a scene's documented switches could not be chosen — found in a user trial):
+    the film size comes from it, an unknown name is Mitsuba's "unused parameters" error, a
+    malformed one argparse's, and a file a parameter names is an input the outputs may not
+    overwrite (its PNG twin neither)."""
+    text = small_scene.read_text().replace(
+        'value="tex.png"', 'value="$image"').replace(
+        '<scene version="3.0.0">', '<scene version="3.0.0"><default name="w" value="32"/>'
+        '<default name="image" value="tex.png"/>').replace(
+        '<integer name="width" value="32"/>', '<integer name="width" value="$w"/>')
+    small_scene.write_text(text)
+    shutil.copy(tmp_path / 'tex.png', tmp_path / 'other.png')
+    out = tmp_path / 'out.exr'
+    r = cli('render', str(small_scene), '-o', str(out), '-D', 'w=20', '-D', 'image=other.png',
+            '--spp', '1', '-q')
+    assert '(20x24, 1 spp' in r.stdout
+    r = cli('render', str(small_scene), '-o', str(out), '-D', 'nonsense=3', check=False)
+    assert r.returncode == 2 and 'unused parameters' in r.stderr and 'nonsense' in r.stderr
+    r = cli('render', str(small_scene), '-o', str(out), '-D', 'w', check=False)
+    assert r.returncode == 2 and 'argument -D: expected NAME=VALUE' in r.stderr
+    before = (tmp_path / 'other.png').read_bytes()
+    r = cli('render', str(small_scene), '-o', str(tmp_path / 'other.exr'), '-D',
+            'image=other.png', check=False)
+    assert r.returncode == 2 and 'refusing to overwrite' in r.stderr
+    assert (tmp_path / 'other.png').read_bytes() == before
+
+
 def test_render_errors_are_clear(tmp_path):
     r = cli('render', str(tmp_path / 'missing.xml'), '-o', str(tmp_path / 'x.exr'), check=False)
     assert r.returncode == 2 and 'does not exist' in r.stderr
@@ -145,6 +173,76 @@ def test_demo_options_are_checked(args, message, tmp_path):
     r = cli(*args, '--out', str(tmp_path / 'out'), check=False)
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert not (tmp_path / 'out').exists()
+
+
+@pytest.mark.parametrize('args, message', [
+    (('bench', 'lookups', '--size', '0'), 'argument --size: must be >= 1, got 0'),
+    (('bench', 'lookups', '--count', '0'), 'argument --count: must be >= 1, got 0'),
+    (('bench', 'lookups', '--repeats', '0'), 'argument --repeats: must be >= 1, got 0'),
+    (('bench', 'lookups', '--anisotropy', '0'), 'argument --anisotropy: must be a finite'),
+    (('bench', 'lookups', '--anisotropy', '0.5'), 'argument --anisotropy: must be >= 1'),
+    (('bench', 'lookups', '--minor', '-1'), 'argument --minor: must be a finite number > 0'),
+    (('bench', 'lookups', '--sweep', 'abc'), 'argument --sweep: expected a number, got "abc"'),
+    (('bench', 'lookups', '--variant', 'foo'), 'argument --variant: unknown variant "foo"'),
+    (('bench', 'lookups', '--variant', 'scalar_rgb'), 'scalar variants are not supported'),
+    (('bench', 'render', '--repeats', '-1'), 'argument --repeats: must be >= 1, got -1'),
+    (('bench', 'render', '--ref-spp', '0'), 'argument --ref-spp: must be >= 1, got 0'),
+    (('bench', 'render', '--out', '{file}/x'), 'argument --out: "{file}/x" is below "{file}"'),
+    (('bench', 'integrator', '--repeats', '0'), 'argument --repeats: must be >= 1, got 0'),
+    (('bench', 'integrator', '--spp', '-4'), 'argument --spp: must be >= 1, got -4'),
+    (('bench', 'pyramid', '--lookups', '0'), 'argument --lookups: must be >= 1, got 0'),
+    (('bench', 'memory', '--reloads', '-1'), 'argument --reloads: must be >= 0, got -1'),
+    (('bench', 'memory', '--out', '{file}/x.md'), 'its folder "{file}" does not exist'),
+    (('bench', 'memory', '--out', '{dir}'), 'argument --out: "{dir}" is a folder, not a file'),
+    (('demo', 'inverse', '--out', '{file}/x'), 'argument --out: "{file}/x" is below "{file}"'),
+    (('demo', 'horizon', '--out', '{file}'), 'argument --out: "{file}" is a file, not a folder')])
+def test_benchmark_options_are_checked(args, message, tmp_path, capsys):
+    """Found in a user trial: each of these ended in 'error: unexpected …' (exit 3, which the
+    README calls a bug: a ZeroDivisionError, a Dr.Jit size mismatch, an empty median, NaN
+    sizes, an ImportError, NotADirectoryError), or was replaced silently (``--repeats 0``,
+    ``--ref-spp 0``: the defaults) or accepted (``--minor -1``). Now argparse's one-line error,
+    exit 2, before anything runs (parsed in this process: nothing is imported or rendered)."""
+    from mitsuba_pbrt_tex import cli as ours
+    a_file = tmp_path / 'a_file'
+    a_file.write_text('mine')
+    fill = {'file': str(a_file), 'dir': str(tmp_path)}
+    with pytest.raises(SystemExit) as e:
+        ours.main([a.format(**fill) for a in args])
+    assert e.value.code == 2
+    assert message.format(**fill) in capsys.readouterr().err
+    assert a_file.read_text() == 'mine'
+
+
+def test_info_markdown_has_the_mapping_tables_its_plugins_refer_to():
+    """``info NAME --markdown`` appended both mapping tables to every plugin, also to those
+    without a mapping (found in a user trial); each table now comes with the plugins that
+    refer to it (all of them: the README's reference)."""
+    from mitsuba_pbrt_tex import docs
+    assert 'Mappings' not in docs.markdown(['pbrt_path', 'pbrt_constant'])
+    image = docs.markdown(['pbrt_imagemap'])
+    assert '2D mapping parameters' in image and '3D mapping parameters' not in image
+    solid = docs.markdown(['pbrt_fbm'])
+    assert '3D mapping parameters' in solid and '2D mapping parameters' not in solid
+    both = docs.markdown()
+    assert '2D mapping parameters' in both and '3D mapping parameters' in both
+
+
+def test_readme_summary_is_replaced_only_by_a_full_run(tmp_path):
+    """``info --update-readme --bench-results`` replaces the README's benchmark summary only
+    with one covering every scene the README's has: a run of some scenes (``--scenes``) is
+    refused, the README unchanged (found in a user trial, with a --quick one-scene run)."""
+    from mitsuba_pbrt_tex import docs
+    readme = tmp_path / 'README.md'
+    readme.write_text(open(os.path.join(ROOT, 'README.md'), encoding='utf-8').read())
+    before = readme.read_text()
+    partial = tmp_path / 'results.md'
+    partial.write_text('Benchmark: 320×180\n\n## Summary\n\n- **grazing-checker**: best of '
+                       'ours ...\n')
+    with pytest.raises(ValueError, match='no summary of .*grazing-zoneplate'):
+        docs.update_readme(str(readme), str(partial))
+    assert readme.read_text() == before
+    full = os.path.join(ROOT, 'mitsuba_pbrt_tex', 'bench', 'report', 'results.md')
+    assert docs.update_readme(str(readme), full) is False     # the README is generated from it
 
 
 def test_info_lists_every_plugin_and_parameter():

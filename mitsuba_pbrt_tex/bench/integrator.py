@@ -72,12 +72,14 @@ def run(spp=16, res=(320, 180), repeats=5, variant='llvm_ad_rgb', out=print):
 
 
 def main(argv=None) -> int:
-    from ..cli import command_parser
+    from ..cli import command_parser, positive_int, variant_name
     ap = command_parser('bench integrator', __doc__)
-    ap.add_argument('--spp', type=int, default=16, help='samples per pixel of each render')
-    ap.add_argument('--repeats', type=int, default=5,
+    ap.add_argument('--spp', type=positive_int, default=16,
+                    help='samples per pixel of each render')
+    ap.add_argument('--repeats', type=positive_int, default=5,
                     help='timed renders per configuration after a warm-up (medians reported)')
-    ap.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant')
+    ap.add_argument('--variant', type=variant_name, default='llvm_ad_rgb',
+                    help='Mitsuba variant')
     ap.add_argument('--res', default='320x180', help='image size WxH (default 320x180)')
     args = ap.parse_args(argv)
     try:

@@ -217,24 +217,32 @@ def cache_lines_ewa(size, u, v, d0, d1, max_anisotropy):
 
 
 def main(argv=None) -> int:
-    from ..cli import command_parser
+    from ..cli import (command_parser, positive_float, positive_floats, positive_int,
+                       variant_name)
     ap = command_parser('bench lookups', __doc__)
-    ap.add_argument('--size', type=int, default=1024, help='texture resolution (square)')
-    ap.add_argument('--count', type=int, default=1 << 20, help='lookups per batch')
-    ap.add_argument('--anisotropy', type=float, default=8.0, help='major/minor axis ratio')
-    ap.add_argument('--minor', type=float, default=1.5, help='minor axis length in texels')
-    ap.add_argument('--maxanisotropy', type=float, default=8.0, help='EWA anisotropy clamp')
-    ap.add_argument('--repeats', type=int, default=7,
-                    help='timed batches per filter after a warm-up (ranges reported)')
-    ap.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant')
-    ap.add_argument('--sweep', default='3,6,12',
+    ap.add_argument('--size', type=positive_int, default=1024,
+                    help='texture resolution (square)')
+    ap.add_argument('--count', type=positive_int, default=1 << 20, help='lookups per batch')
+    ap.add_argument('--anisotropy', type=positive_float, default=8.0,
+                    help='major/minor axis ratio (>= 1)')
+    ap.add_argument('--minor', type=positive_float, default=1.5,
+                    help='minor axis length in texels')
+    ap.add_argument('--maxanisotropy', type=positive_float, default=8.0,
+                    help='EWA anisotropy clamp (>= 1)')
+    ap.add_argument('--repeats', type=positive_int, default=7,
+                    help='timed batches per filter after a warm-up (their median is reported)')
+    ap.add_argument('--variant', type=variant_name, default='llvm_ad_rgb',
+                    help='Mitsuba variant')
+    ap.add_argument('--sweep', type=positive_floats, default=(3.0, 6.0, 12.0),
                     help='comma-separated larger minor axes (texels) at which EWA is timed again '
                          '(random uv; empty: none)')
     ap.add_argument('--coherent', action='store_true',
                     help='lookups in raster order over the texture (as from a render) instead of '
                          'at random uv')
     args = ap.parse_args(argv)
+    for name in ('anisotropy', 'maxanisotropy'):
+        if getattr(args, name) < 1:
+            ap.error(f'argument --{name}: must be >= 1, got {getattr(args, name)}')
     run(args.size, args.count, args.anisotropy, args.minor, args.repeats, args.variant,
-        args.maxanisotropy, coherent=args.coherent,
-        sweep=tuple(float(x) for x in args.sweep.split(',') if x.strip()))
+        args.maxanisotropy, coherent=args.coherent, sweep=args.sweep)
     return 0

@@ -135,16 +135,16 @@ def run(size: int = 2048, reloads: int = 5, kinds=('bitmap', 'bilinear', 'ewa'),
 
 
 def main(argv=None) -> int:
-    from ..cli import command_parser
+    from ..cli import command_parser, non_negative_int, output_file, positive_int
     ap = command_parser('bench memory', __doc__)
-    ap.add_argument('--size', type=int, default=2048, help='image side in pixels (default 2048; '
-                    '8192 is a 768 MiB image, with peaks near 3 GiB)')
-    ap.add_argument('--reloads', type=int, default=5,
+    ap.add_argument('--size', type=positive_int, default=2048,
+                    help='image side in pixels (default 2048; 8192 is a 768 MiB image, with '
+                         'peaks near 3 GiB)')
+    ap.add_argument('--reloads', type=non_negative_int, default=5,
                     help='times an edited image is reloaded in the cache measurement')
-    ap.add_argument('--out', default=None, help='also write the report to this Markdown file')
+    ap.add_argument('--out', type=output_file, default=None,
+                    help='also write the report to this Markdown file')
     args = ap.parse_args(argv)
-    if args.size < 1 or args.reloads < 0:
-        ap.error(f'--size must be >= 1 and --reloads >= 0, got {args.size} and {args.reloads}')
     lines = []
 
     def out(line):

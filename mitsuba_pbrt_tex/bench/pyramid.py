@@ -156,9 +156,9 @@ def run(lookups=300, seed=3, out=print):
 
 
 def main(argv=None) -> int:
-    from ..cli import command_parser
+    from ..cli import command_parser, positive_int
     ap = command_parser('bench pyramid', __doc__)
-    ap.add_argument('--lookups', type=int, default=300,
+    ap.add_argument('--lookups', type=positive_int, default=300,
                     help='random lookups per test image for the RMSE columns')
     args = ap.parse_args(argv)
     run(args.lookups)

@@ -520,7 +520,7 @@ def run(scene_names=None, quick=False, out_dir='bench-out', repeats=None, ref_sp
                     + at_builtin_errors(case, rows)
                     + drop_in_lines(case, res, builtin_spp, pairs, variant, log))
     summary += compare_groups(rows)
-    write_outputs(rows, summary, out_dir, base_res, ref_spp, variant, repeats)
+    write_outputs(rows, summary, out_dir, base_res, ref_spp, variant, repeats, quick)
     return rows, summary
 
 
@@ -697,7 +697,7 @@ def compare_groups(rows) -> list[str]:
     return lines
 
 
-def write_outputs(rows, summary, out_dir, res, ref_spp, variant, repeats):
+def write_outputs(rows, summary, out_dir, res, ref_spp, variant, repeats, quick=False):
     keys = ['scene', 'method', 'ours', 'group', 'spp', 'time_s', 'compile_s', 'rmse',
             'rmse_textured', 'rel_error', 'reference_noise', 'rmse_interior', 'interior_noise',
             'edge_rows', 'edge_noise', 'edge_share']
@@ -706,7 +706,9 @@ def write_outputs(rows, summary, out_dir, res, ref_spp, variant, repeats):
         w.writeheader()
         for r in rows:
             w.writerow({k: r[k] for k in keys})
-    md = [f'Benchmark: {res[0]}×{res[1]}, reference {ref_spp} spp, median of {repeats} timed '
+    from ..docs import QUICK_MARK
+    head = f'{QUICK_MARK}, not a measurement) ' if quick else 'Benchmark: '
+    md = [f'{head}{res[0]}×{res[1]}, reference {ref_spp} spp, median of {repeats} timed '
           f'render(s) after a warm-up, variant {variant}, {os.cpu_count()} CPU threads.', '',
           '| scene | method | spp | time (ms) | compile (ms) | RMSE | RMSE textured | rel. error |',
           '|---|---|---|---|---|---|---|---|']
@@ -755,15 +757,19 @@ def charts(rows, out_dir):
 
 
 def main(argv=None) -> int:
-    from ..cli import command_parser
+    from ..cli import command_parser, output_folder, positive_int, variant_name
     ap = command_parser('bench render', __doc__)
     ap.add_argument('--scenes', nargs='*', default=None,
                     help='subset of: ' + ', '.join(c.name for c in cases(work_dir=None)))
     ap.add_argument('--quick', action='store_true', help='tiny resolution and few spp (smoke test)')
-    ap.add_argument('--out', default='bench-out', help='output folder (default bench-out)')
-    ap.add_argument('--repeats', type=int, default=None, help='timed renders per point')
-    ap.add_argument('--ref-spp', type=int, default=None, help='reference samples per pixel')
-    ap.add_argument('--variant', default='llvm_ad_rgb', help='Mitsuba variant')
+    ap.add_argument('--out', type=output_folder, default='bench-out',
+                    help='output folder (default bench-out)')
+    ap.add_argument('--repeats', type=positive_int, default=None,
+                    help='timed renders per point')
+    ap.add_argument('--ref-spp', type=positive_int, default=None,
+                    help='reference samples per pixel')
+    ap.add_argument('--variant', type=variant_name, default='llvm_ad_rgb',
+                    help='Mitsuba variant')
     ap.add_argument('--mitsuba-data', default=None, metavar='DIR',
                     help="a checkout of mitsuba-renderer/mitsuba-data: the real-scene case then "
                          "renders Mitsuba's own matpreview scene with its floor_tiles.jpg (else "

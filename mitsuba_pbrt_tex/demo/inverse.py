@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..cli import positive_float, positive_int
+from ..cli import output_folder, positive_float, positive_int
 from ..outputs import save_figure
 
 VIEWS = ((0.12, 3.0), (0.35, 8.0), (0.9, 20.0))      # (camera height, look-down angle in degrees)
@@ -247,7 +247,7 @@ def plots(history, truth, finals, target_view, out_dir):
 def main(argv=None) -> int:
     from ..cli import command_parser
     ap = command_parser('demo inverse', __doc__)
-    ap.add_argument('--out', default='demo-out', help='output folder (default demo-out)')
+    ap.add_argument('--out', type=output_folder, default='demo-out', help='output folder (default demo-out)')
     ap.add_argument('--iterations', type=positive_int, default=None,
                     help='optimisation steps (default 60; 3 with --quick)')
     ap.add_argument('--res', type=positive_int, default=None,
