@@ -42,8 +42,9 @@ makes the rows run along the footprint's longer extent, so that fewer rows need 
   the float32 rounding of the two sums, and a thin footprint loses no digits to a mismatched
   area (worst error against polygon clipping, 64:1 footprints down to 0.006 texel across: 3e-6
   on values in [0, 1]). Those roundings grow with the walk: its partial weights have both signs
-  and cancel, so a long walk on a coarse level (footprints of ~10³ texels, rotated, on a 33×5
-  image's 2×1 level) returns a constant ~1e-5 of its value off (a user trial measured 1.6e-5).
+  and cancel, so long walks on the coarse levels of elongated images return a constant up to
+  ~2e-4 of its value off (footprints to 10³ image widths, any orientation: 1.8e-5 on a 33×5
+  image, 0.5–1.8e-4 on 3×1000, 2×700, 700×1, 3×257 and 8×2048 ones, 3e-6 on square ones).
 * Every iteration adds ``weights · texels`` for the texels it reads and carries no texel value:
   both loops are differentiable by Dr.Jit's sum-style reverse mode and by its forward mode
   (gradients reach the pyramid buffer exactly; the weights are geometry, not differentiated).
@@ -81,7 +82,7 @@ import mitsuba as mi
 
 from .mipmap import ad_alias
 from .outline import Outline, Parallelogram, Piece, walk
-from .wrap import COORD_LIMIT, wrap_1d
+from .wrap import COORD_LIMIT, PERIODIC, first_period, wrap_1d
 
 #: The level's short side (area / longest side) is at most this many texels. A footprint wider
 #: than this is walked on a coarser level, in about half the walk's and chords' iterations per
@@ -247,8 +248,7 @@ def _frame(mip, wrap, st, dst0, dst1, active) -> _Frame:
     level = mi.UInt32(dr.minimum(want, last))
     view = mip.view(level)
     w, h = view.size
-    sx = dr.clip(_finite(st.x), -COORD_LIMIT, COORD_LIMIT)
-    sy = dr.clip(_finite(st.y), -COORD_LIMIT, COORD_LIMIT)
+    sx, sy = _near_origin(_finite(st.x), wrap), _near_origin(_finite(st.y), wrap)
     p = Parallelogram(mi.Point2f(dr.fma(sx, w, -0.5), dr.fma(sy, h, -0.5)),
                       mi.Vector2f(s0 * w, t0 * h), mi.Vector2f(s1 * w, t1 * h))
     c, half = p.c, p.half_extent()
@@ -264,6 +264,16 @@ def _frame(mip, wrap, st, dst0, dst1, active) -> _Frame:
     run = active & ~degenerate & ~beyond & ~in_cell
     return _Frame(level, texels, origin.x, origin.y, p.moved(c - origin).outline(), run, in_cell,
                   degenerate, beyond)
+
+
+def _near_origin(s, wrap):
+    """Texture coordinate ``s`` moved by whole periods into the first (repeat, mirror: the same
+    lookup, and the footprint's texel coordinates keep their float32 digits however far out it
+    was), else within ±COORD_LIMIT (clamp, black: the reconstruction is constant that far
+    out)."""
+    if wrap in PERIODIC:
+        return first_period(s, wrap)
+    return dr.clip(s, -COORD_LIMIT, COORD_LIMIT)
 
 
 def _near_image(c, half, w, h, wrap):

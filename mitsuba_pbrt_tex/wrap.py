@@ -108,8 +108,17 @@ def texel_coord(st, n, mode: str, offset=0.0):
     the same texel (a 64-texel-wide image at u = 65536 + …; found in a user trial). Within the
     limit the coordinate is the product itself, rounded as Mitsuba's ``bitmap`` rounds it."""
     x = dr.fma(st, n, offset)
-    if mode in ('repeat', 'mirror'):
-        period = 1.0 if mode == 'repeat' else 2.0
-        moved = dr.fma(st - dr.floor(st * (1.0 / period)) * period, n, offset)
-        x = dr.select(dr.abs(x) > COORD_LIMIT, moved, x)
+    if mode in PERIODIC:
+        x = dr.select(dr.abs(x) > COORD_LIMIT, dr.fma(first_period(st, mode), n, offset), x)
     return sanitize_coord(x)
+
+
+#: The modes under which the texture repeats, with their periods in texture coordinates.
+PERIODIC = {'repeat': 1.0, 'mirror': 2.0}
+
+
+def first_period(st, mode: str):
+    """Texture coordinate ``st`` moved by whole periods of ``mode`` (one of :data:`PERIODIC`)
+    into ``[0, period)`` (exact: the period is a power of two)."""
+    period = PERIODIC[mode]
+    return st - dr.floor(st * (1.0 / period)) * period

@@ -178,7 +178,8 @@ def test_lookups_keep_tiling_beyond_the_coordinate_clamp(mode, rng):
     """Texture coordinates whose texel coordinate lies beyond ±2^22 (a 64×8 image at u = 65536
     + …, v = 2^19 + …) read what the same lookup reads whole periods (65536, 2^19: even, so
     for mirror too) nearer the image — the wrap's own symmetry, for every filter (with
-    footprints at level 0 and at level 1) and the Gaussian pixel kernel; point and bilinear
+    footprints at level 0 and at level 1; and at u, v beyond 2^22 themselves) and the Gaussian
+    pixel kernel; point and bilinear
     also equal Mitsuba's ``bitmap`` there. Every such lookup read one texel before (the clamp
     came before the wrap; found in a user trial). The coordinates are exact in float32 (u a
     multiple of 1/128, v of 1/16), so the two lookups see the same position: equal to float32
@@ -199,6 +200,9 @@ def test_lookups_keep_tiling_beyond_the_coordinate_clamp(mode, rng):
         si.duv_dy = mi.Vector2f(-0.2 * d / 64, d / 8)
         return A(tex.eval(si))
 
+    # and beyond ±2^22 in texture coordinates themselves (the box filter clamped those; there
+    # float32 holds halves: u, v = 2^22 + 0 or 1/2)
+    half = rng.integers(0, 2, (n, 2)) / 2.0
     for filt in ('point', 'bilinear', 'trilinear', 'ewa', 'box'):
         tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'raw': True,
                             'filter': filt, 'wrap': mode})
@@ -206,6 +210,8 @@ def test_lookups_keep_tiling_beyond_the_coordinate_clamp(mode, rng):
         for d in (0.0, 0.7, 2.5):
             np.testing.assert_allclose(lookup(tex, far, d), lookup(tex, near, d), atol=1e-6,
                                        err_msg=f'{filt}, footprint {d}')
+            np.testing.assert_allclose(lookup(tex, 2.0 ** 22 + half, d), lookup(tex, half, d),
+                                       atol=1e-6, err_msg=f'{filt}, footprint {d}, u ≥ 2^22')
     for filt, kind in (('point', 'nearest'), ('bilinear', 'bilinear')):
         ours = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'raw': True,
                              'filter': filt, 'wrap': mode})
