@@ -48,12 +48,13 @@ def positive_floats(text: str) -> tuple:
 
 
 def definition(text: str) -> tuple:
-    """An argparse type: ``NAME=VALUE`` (a scene parameter, as Mitsuba's ``-D``)."""
+    """An argparse type: ``NAME=VALUE`` (a scene parameter, as Mitsuba's ``-D``: any name
+    without ``$`` or white space)."""
     name, eq, value = text.partition('=')
-    if not eq or not name.strip() or not name.strip().replace('_', 'a').isalnum():
+    if not eq or not name or '$' in name or any(c.isspace() for c in name):
         raise argparse.ArgumentTypeError(f'expected NAME=VALUE (a scene parameter, as in '
                                          f'"-D spp=16"), got "{text}"')
-    return name.strip(), value
+    return name, value
 
 
 def variant_name(text: str) -> str:
@@ -66,25 +67,37 @@ def variant_name(text: str) -> str:
 
 
 def output_folder(text: str) -> str:
-    """An argparse type: a folder to write into (made if missing): not a file, nor below one."""
-    path = os.path.abspath(text)
-    existing = path
-    while not os.path.exists(existing):
-        existing = os.path.dirname(existing)
-    if not os.path.isdir(existing):
-        where = 'is a file' if existing == path else f'is below "{existing}", a file'
-        raise argparse.ArgumentTypeError(f'"{text}" {where}, not a folder')
-    return text
+    """An argparse type: a folder to write into (made if missing): not empty, not a file, a
+    dangling link or below one — as the system resolves the path (``a_file/../x`` is below a
+    file)."""
+    if not text:
+        raise argparse.ArgumentTypeError('the folder name is empty')
+    path = text.rstrip(os.sep) or os.sep
+    while True:
+        if os.path.lexists(path):
+            if os.path.isdir(path):
+                return text
+            kind = 'a dangling symbolic link' if not os.path.exists(path) else 'a file'
+            where = 'is' if path == (text.rstrip(os.sep) or os.sep) else f'is below "{path}",'
+            raise argparse.ArgumentTypeError(f'"{text}" {where} {kind}, not a folder')
+        parent = os.path.dirname(path)
+        if parent in ('', path):        # the working directory (relative) or the root
+            return text
+        path = parent
 
 
 def output_file(text: str) -> str:
     """An argparse type: a file to write, in a folder that exists."""
-    path = os.path.abspath(text)
-    if os.path.isdir(path):
+    if not text or text.endswith(os.sep):
+        raise argparse.ArgumentTypeError(f'"{text}" is not a file name')
+    if os.path.isdir(text):
         raise argparse.ArgumentTypeError(f'"{text}" is a folder, not a file')
-    if not os.path.isdir(os.path.dirname(path)):
-        raise argparse.ArgumentTypeError(f'"{text}": its folder "{os.path.dirname(path)}" does '
-                                         f'not exist (or is a file)')
+    if os.path.islink(text) and not os.path.exists(text):
+        raise argparse.ArgumentTypeError(f'"{text}" is a dangling symbolic link')
+    folder = os.path.dirname(text) or '.'
+    if not os.path.isdir(folder):
+        raise argparse.ArgumentTypeError(f'"{text}": its folder "{folder}" does not exist (or '
+                                         f'is a file)')
     return text
 
 

@@ -165,6 +165,11 @@ def _bench_summary(bench_results: str, readme: str) -> str:
     old = re.findall(re.escape(BENCH_MARKERS[0]) + '(.*?)' + re.escape(BENCH_MARKERS[1]),
                      readme, flags=re.S)
     missing = _summary_scenes(old[0]) - _summary_scenes(summary) if len(old) == 1 else set()
+    if missing == {'matpreview-photo'} and 'envlit-photo' in _summary_scenes(summary):
+        raise ValueError(f'"{bench_results}" is from a run without --mitsuba-data (its '
+                         f'real-scene case is the look-alike envlit-photo, the README\'s is '
+                         f'matpreview-photo): run `bench render --mitsuba-data DIR`; nothing was '
+                         f'changed')
     if missing:
         raise ValueError(f'"{bench_results}" has no summary of {", ".join(sorted(missing))}, '
                          f'which the README has (a run of some scenes: splice its rows into '

@@ -73,17 +73,27 @@ def scene_inputs(scene_path: str, params: dict | None = None) -> set[str]:
             if el.get('name') is not None and el.get('value') is not None:
                 defaults.setdefault(el.get('name'), el.get('value'))
         for el in root.iter('path'):            # <path value="..."/> extends the resolver
-            if el.get('value'):
-                extra_dirs.extend(_candidates(subst(el.get('value')),
-                                              [os.path.dirname(scene_path)]))
+            for value in substituted(el.get('value') or ''):
+                if value:
+                    extra_dirs.extend(_candidates(value, [os.path.dirname(scene_path)]))
         for el in root.iter('include'):
-            if el.get('filename'):
-                for c in _candidates(subst(el.get('filename')), folders(path)):
+            for value in substituted(el.get('filename') or ''):
+                for c in _candidates(value, folders(path)) if value else ():
                     if os.path.isfile(c):
                         read(c)
 
-    def subst(value: str) -> str:
-        return _VAR_RE.sub(lambda m: defaults.get(m.group(1), m.group(0)), value)
+    def substituted(value: str) -> set[str]:
+        """``value`` with the parameters substituted, every way Mitsuba might: its loader
+        replaces the text ``$name`` for each parameter in turn (so ``$wx`` reads ``$w``'s
+        value when only ``w`` is given, and any name works, also ``1img`` or ``my-mode``);
+        a whole-word substitution too. Protecting too much only refuses an output name."""
+        out = {_VAR_RE.sub(lambda m: defaults.get(m.group(1), m.group(0)), value)}
+        for order in (list(defaults), sorted(defaults, key=len, reverse=True)):
+            text = value
+            for name in order:
+                text = text.replace('$' + name, defaults[name])
+            out.add(text)
+        return out
 
     def folders(doc_path):
         base = [os.path.dirname(scene_path), os.path.dirname(os.path.abspath(doc_path))]
@@ -95,12 +105,13 @@ def scene_inputs(scene_path: str, params: dict | None = None) -> set[str]:
             for attr, value in el.attrib.items():
                 if attr in _NOT_PATHS:
                     continue
-                value = subst(value).strip()
-                if not value or len(value) > 4096 or _NUMBERS_RE.match(value):
-                    continue
-                for c in _candidates(value, folders(doc)):
-                    if os.path.isfile(c):
-                        found.add(os.path.realpath(c))
+                for value in substituted(value):
+                    value = value.strip()
+                    if not value or len(value) > 4096 or _NUMBERS_RE.match(value):
+                        continue
+                    for c in _candidates(value, folders(doc)):
+                        if os.path.isfile(c):
+                            found.add(os.path.realpath(c))
     return found
 
 
@@ -236,7 +247,7 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
                 variant: str = 'llvm_ad_rgb', progress: bool = True, stream=None,
                 params: dict | None = None) -> dict:
     """Render ``scene_path`` to ``out_path`` (EXR) and a PNG beside it; returns timing info.
-    ``params``: values for the scene's ``$name`` parameters (over its ``<default>``\s), as
+    ``params``: values for the scene's ``$name`` parameters (over its ``<default>`` values), as
     Mitsuba's ``-D name=value``."""
     import mitsuba as mi
 

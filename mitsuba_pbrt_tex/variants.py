@@ -26,27 +26,32 @@ def support_problem(variant: str | None) -> str | None:
     """Why ``variant`` is unsupported, or None when it is supported."""
     if variant is None:
         return 'no Mitsuba variant is set (call mi.set_variant("llvm_ad_rgb") first)'
-    scalar, spectral = variant.startswith('scalar'), 'spectral' in variant
-    if not (scalar or spectral):
+    why = _unsupported(variant)
+    if not why:
         return None
+    return '; '.join(why) + '; use %s' % ' or '.join(f'"{v}"' for v in supported_instead(variant))
+
+
+def _unsupported(variant: str) -> list:
+    """Why the plugins refuse ``variant`` (empty where they take it)."""
     why = []
-    if scalar:
+    if variant.startswith('scalar'):
         why.append('scalar variants are not supported: the lookups are vectorised Dr.Jit kernels')
-    if spectral:
+    if 'spectral' in variant:
         why.append('spectral variants are not supported (filtered RGB cannot be spectrally '
                    'upsampled after filtering)')
-    return '; '.join(why) + '; use %s' % ' or '.join(f'"{v}"' for v in supported_instead(variant))
+    return why
 
 
 def supported_instead(variant: str) -> list:
     """The supported variants closest to ``variant``: its JIT backend (``llvm_ad`` for scalar
-    ones) in RGB and mono, polarized if it is — the ones this Mitsuba build has, where it has
-    any."""
+    ones) in RGB and mono, polarized if it is — the ones this Mitsuba build has and this
+    machine runs; else every variant that works here; else those names."""
     backend = 'cuda_ad' if variant.startswith('cuda') else 'llvm_ad'
-    polarized = '_polarized' if variant.endswith('_polarized') else ''
+    polarized = '_polarized' if '_polarized' in variant else ''
     close = [f'{backend}_{colour}{polarized}' for colour in ('rgb', 'mono')]
-    built = [v for v in close if v in mi.variants()]
-    return built or close
+    usable = usable_variants()
+    return [v for v in close if v in usable] or usable or close
 
 
 def variant_problem(variant: str) -> str | None:
@@ -92,4 +97,4 @@ def backend_available(variant: str) -> bool:
 
 def usable_variants() -> list[str]:
     """The variants of this Mitsuba build that the plugins support and this machine can run."""
-    return [v for v in mi.variants() if support_problem(v) is None and backend_available(v)]
+    return [v for v in mi.variants() if not _unsupported(v) and backend_available(v)]

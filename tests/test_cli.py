@@ -153,6 +153,31 @@ def test_render_sets_scene_parameters_and_protects_what_they_name(small_scene, t
     assert (tmp_path / 'other.png').read_bytes() == before
 
 
+def test_scene_parameters_protect_inputs_under_any_name_mitsuba_takes(tmp_path):
+    """Mitsuba replaces the text ``$name`` for any parameter name (``1img``, ``my-mode``; and
+    ``$wx`` reads ``$w`` when only ``w`` is set), so the input protection substitutes the same
+    way: a ``-D 1img=in.exr`` input was not protected, and ``render -o in.exr`` overwrote it
+    (found in a review)."""
+    from mitsuba_pbrt_tex.cli import definition
+    from mitsuba_pbrt_tex.render import scene_inputs
+    for name in ('1img', 'my-mode', 'é'):
+        assert definition(f'{name}=in.exr') == (name, 'in.exr')
+    (tmp_path / 'in.exr').write_text('mine')
+    (tmp_path / 'inx.png').write_text('mine')
+    scene = tmp_path / 'scene.xml'
+    scene.write_text('<scene version="3.0.0"><texture type="bitmap">'
+                     '<string name="filename" value="$1img"/></texture>'
+                     '<texture type="bitmap"><string name="filename" value="$wx"/></texture>'
+                     '</scene>')
+    found = scene_inputs(str(scene), {'1img': 'in.exr', 'w': 'inx.png'})
+    assert str((tmp_path / 'in.exr').resolve()) in found
+    assert str((tmp_path / 'inx.png.png').resolve()) not in found     # (no such file)
+    found = scene_inputs(str(scene), {'w': 'in', '1img': 'x'})
+    assert str((tmp_path / 'inx.png').resolve()) not in found          # '$wx' -> 'inx'
+    (tmp_path / 'inx').write_text('mine')
+    assert str((tmp_path / 'inx').resolve()) in scene_inputs(str(scene), {'w': 'in', '1img': 'x'})
+
+
 def test_render_errors_are_clear(tmp_path):
     r = cli('render', str(tmp_path / 'missing.xml'), '-o', str(tmp_path / 'x.exr'), check=False)
     assert r.returncode == 2 and 'does not exist' in r.stderr
@@ -180,7 +205,7 @@ def test_demo_options_are_checked(args, message, tmp_path):
     (('bench', 'lookups', '--count', '0'), 'argument --count: must be >= 1, got 0'),
     (('bench', 'lookups', '--repeats', '0'), 'argument --repeats: must be >= 1, got 0'),
     (('bench', 'lookups', '--anisotropy', '0'), 'argument --anisotropy: must be a finite'),
-    (('bench', 'lookups', '--anisotropy', '0.5'), 'argument --anisotropy: must be >= 1'),
+    (('bench', 'lookups', '--anisotropy', '0.5'), 'argument --anisotropy: must be in [1, 256]'),
     (('bench', 'lookups', '--minor', '-1'), 'argument --minor: must be a finite number > 0'),
     (('bench', 'lookups', '--sweep', 'abc'), 'argument --sweep: expected a number, got "abc"'),
     (('bench', 'lookups', '--variant', 'foo'), 'argument --variant: unknown variant "foo"'),
@@ -195,17 +220,31 @@ def test_demo_options_are_checked(args, message, tmp_path):
     (('bench', 'memory', '--out', '{file}/x.md'), 'its folder "{file}" does not exist'),
     (('bench', 'memory', '--out', '{dir}'), 'argument --out: "{dir}" is a folder, not a file'),
     (('demo', 'inverse', '--out', '{file}/x'), 'argument --out: "{file}/x" is below "{file}"'),
-    (('demo', 'horizon', '--out', '{file}'), 'argument --out: "{file}" is a file, not a folder')])
+    (('demo', 'horizon', '--out', '{file}'), 'argument --out: "{file}" is a file, not a folder'),
+    (('demo', 'horizon', '--out', ''), 'argument --out: the folder name is empty'),
+    (('demo', 'horizon', '--out', '{dangling}'), '"{dangling}" is a dangling symbolic link'),
+    (('demo', 'horizon', '--out', '{file}/../x'), '"{file}/../x" is below "{file}", a file'),
+    (('bench', 'memory', '--out', '{dir}/x.md/'), '"{dir}/x.md/" is not a file name'),
+    (('bench', 'memory', '--out', '{file}/../x.md'), 'its folder "{file}/.." does not exist'),
+    (('bench', 'memory', '--out', '{dangling}'), '"{dangling}" is a dangling symbolic link'),
+    (('bench', 'lookups', '--minor', '1e6', '--size', '16'), 'at most --size (16) texels'),
+    (('bench', 'lookups', '--sweep', '3,1e38'), 'at most --size (1024) texels, got 1e+38'),
+    (('bench', 'lookups', '--anisotropy', '1e6'), 'argument --anisotropy: must be in [1, 256]'),
+    (('render', '{file}', '-o', '{dir}/x.exr', '-D', 'a b=1'), 'argument -D: expected NAME=VALUE'),
+    (('render', '{file}', '-o', '{dir}/x.exr', '-D', '$a=1'), 'argument -D: expected NAME=VALUE')])
 def test_benchmark_options_are_checked(args, message, tmp_path, capsys):
     """Found in a user trial: each of these ended in 'error: unexpected …' (exit 3, which the
     README calls a bug: a ZeroDivisionError, a Dr.Jit size mismatch, an empty median, NaN
     sizes, an ImportError, NotADirectoryError), or was replaced silently (``--repeats 0``,
-    ``--ref-spp 0``: the defaults) or accepted (``--minor -1``). Now argparse's one-line error,
-    exit 2, before anything runs (parsed in this process: nothing is imported or rendered)."""
+    ``--ref-spp 0``: the defaults) or accepted (``--minor -1``), or (an empty, dangling or
+    ``file/..`` ``--out``; a minor axis of 1e6; anisotropy 1e6) failed or ran for ever after
+    the benchmark (found in a review). Now argparse's one-line error, exit 2, before anything
+    runs (parsed in this process: nothing is imported or rendered)."""
     from mitsuba_pbrt_tex import cli as ours
     a_file = tmp_path / 'a_file'
     a_file.write_text('mine')
-    fill = {'file': str(a_file), 'dir': str(tmp_path)}
+    os.symlink(tmp_path / 'nowhere', tmp_path / 'dangling')
+    fill = {'file': str(a_file), 'dir': str(tmp_path), 'dangling': str(tmp_path / 'dangling')}
     with pytest.raises(SystemExit) as e:
         ours.main([a.format(**fill) for a in args])
     assert e.value.code == 2
@@ -239,6 +278,13 @@ def test_readme_summary_is_replaced_only_by_a_full_run(tmp_path):
     partial.write_text('Benchmark: 320×180\n\n## Summary\n\n- **grazing-checker**: best of '
                        'ours ...\n')
     with pytest.raises(ValueError, match='no summary of .*grazing-zoneplate'):
+        docs.update_readme(str(readme), str(partial))
+    assert readme.read_text() == before
+    # a full run without --mitsuba-data has the look-alike instead of Mitsuba's scene
+    nodata = open(os.path.join(ROOT, 'mitsuba_pbrt_tex', 'bench', 'report', 'results.md'),
+                  encoding='utf-8').read().replace('matpreview-photo', 'envlit-photo')
+    partial.write_text(nodata)
+    with pytest.raises(ValueError, match='without --mitsuba-data'):
         docs.update_readme(str(readme), str(partial))
     assert readme.read_text() == before
     full = os.path.join(ROOT, 'mitsuba_pbrt_tex', 'bench', 'report', 'results.md')

@@ -99,7 +99,7 @@ def test_unsupported_variants_refuse_clearly(variant, words):
     the plugins take and this Mitsuba has (scalar_spectral was sent to llvm_ad_spectral, itself
     refused — found in a user trial)."""
     import re
-    from mitsuba_pbrt_tex.variants import support_problem
+    from mitsuba_pbrt_tex.variants import backend_available, support_problem
     mi.set_variant(variant)
     try:
         for name in ('pbrt_constant', 'pbrt_imagemap'):
@@ -112,8 +112,27 @@ def test_unsupported_variants_refuse_clearly(variant, words):
             assert suggested, text
             for other in suggested:
                 assert other in mi.variants() and support_problem(other) is None, text
+                assert backend_available(other), text
     finally:
         mi.set_variant(VARIANT)
+
+
+def test_every_refusal_suggests_variants_that_work_here():
+    """For every variant of this Mitsuba build that the plugins refuse, the variants the
+    message suggests are taken by the plugins and run on this machine (cuda_ad_spectral was
+    sent to cuda_ad_rgb on a machine without CUDA, itself refused — found in a review)."""
+    import re
+    from mitsuba_pbrt_tex.variants import usable_variants, variant_problem
+    usable = usable_variants()
+    assert 'llvm_ad_rgb' in usable
+    for variant in mi.variants():
+        problem = variant_problem(variant)
+        if problem is None:
+            assert variant in usable
+            continue
+        suggested = re.findall(r'"([a-z_]+)"', problem.split('use ')[-1]) \
+            if 'use "' in problem else re.findall(r'([a-z_]+_[a-z]+)', problem.split(': ')[-1])
+        assert suggested and all(v in usable for v in suggested), problem
 
 
 def test_register_needs_a_variant(monkeypatch):

@@ -170,6 +170,8 @@ def _ewa_by_level(batch, fns, minor, sweep, max_anisotropy, repeats, out):
     return rows
 
 
+#: --anisotropy and --maxanisotropy at most this (EWA's cost grows with the clamped ratio).
+MAX_ANISOTROPY = 256.0
 TEXELS_PER_LINE = 4        # 64-byte lines of RGBA float32 texels, rows stored one after another
 
 
@@ -208,6 +210,9 @@ def cache_lines_ewa(size, u, v, d0, d1, max_anisotropy):
             f = A * C - B * B / 4
             s, t = u[k] * n - 0.5, v[k] * n - 0.5
             r = int(math.ceil(math.sqrt(max(A, C)))) + 1        # the extents are √C and √A
+            if r > n:                   # wider than the level: every line of it is read
+                out[k] += n * -(-n // TEXELS_PER_LINE)
+                continue
             xs, ys = np.meshgrid(np.arange(math.floor(s) - r, math.ceil(s) + r + 1),
                                  np.arange(math.floor(t) - r, math.ceil(t) + r + 1))
             ss, tt = xs - s, ys - t
@@ -224,11 +229,11 @@ def main(argv=None) -> int:
                     help='texture resolution (square)')
     ap.add_argument('--count', type=positive_int, default=1 << 20, help='lookups per batch')
     ap.add_argument('--anisotropy', type=positive_float, default=8.0,
-                    help='major/minor axis ratio (>= 1)')
+                    help='major/minor axis ratio (1 to 256)')
     ap.add_argument('--minor', type=positive_float, default=1.5,
                     help='minor axis length in texels')
     ap.add_argument('--maxanisotropy', type=positive_float, default=8.0,
-                    help='EWA anisotropy clamp (>= 1)')
+                    help='EWA anisotropy clamp (1 to 256)')
     ap.add_argument('--repeats', type=positive_int, default=7,
                     help='timed batches per filter after a warm-up (their median is reported)')
     ap.add_argument('--variant', type=variant_name, default='llvm_ad_rgb',
@@ -241,8 +246,13 @@ def main(argv=None) -> int:
                          'at random uv')
     args = ap.parse_args(argv)
     for name in ('anisotropy', 'maxanisotropy'):
-        if getattr(args, name) < 1:
-            ap.error(f'argument --{name}: must be >= 1, got {getattr(args, name)}')
+        if not 1 <= getattr(args, name) <= MAX_ANISOTROPY:
+            ap.error(f'argument --{name}: must be in [1, {MAX_ANISOTROPY:g}] (an EWA lookup '
+                     f'reads about that many texels per minor axis), got {getattr(args, name)}')
+    for name, values in (('minor', (args.minor,)), ('sweep', args.sweep)):
+        if max(values, default=0) > args.size:
+            ap.error(f'argument --{name}: a minor axis must be at most --size ({args.size}) '
+                     f'texels, got {max(values):g}')
     run(args.size, args.count, args.anisotropy, args.minor, args.repeats, args.variant,
         args.maxanisotropy, coherent=args.coherent, sweep=args.sweep)
     return 0
