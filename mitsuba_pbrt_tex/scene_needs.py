@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import raydiff
-from .texture import uses_differentials
+from .texture import filters_film_kernel, uses_differentials
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,9 @@ class SceneNeeds:
     #: a Bool mask over Mitsuba's shape ids: the shapes whose textures read the camera
     #: approximation after a bounce (None: every shape, or nothing to skip; :func:`reader_shapes`)
     reader_shapes: object = None
+    #: some texture filters a Gaussian film's kernel (``texture.filters_film_kernel``): only
+    #: then does ``footprint="pixel"`` with such a film draw the camera samples per pixel
+    film_kernel: bool = False
 
 
 @dataclass(frozen=True)
@@ -74,7 +77,8 @@ class SceneCache:
         readers = [n for n in nodes if isinstance(n, mi.Texture) and uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
-        needs = SceneNeeds(bool(readers), specular, reader_shapes(scene, readers))
+        needs = SceneNeeds(bool(readers), specular, reader_shapes(scene, readers),
+                           any(filters_film_kernel(t) for t in readers))
         self._scene = (shapes, readers, needs)
         return needs
 

@@ -340,6 +340,11 @@ class Plugin(PbrtTexture):
             'ewa', self.wrap, self.max_anisotropy, WIDTH_CONVENTIONS[self.width_convention],
             self.sort_lookups) if self.filter_name == 'box' else None
 
+    def filters_film_kernel(self):
+        """``box`` filters a Gaussian film's kernel around the pixel centre (camera hits of
+        ``pbrt_path`` ``footprint="pixel"``)."""
+        return self.filter_name == 'box'
+
     # ------------------------------------------------------------------ evaluation
     def context(self, si):
         """``box`` opts in to pixel footprints (``pbrt_path`` ``footprint="pixel"``: camera hits

@@ -274,18 +274,21 @@ class Plugin:
     def begin(self, scene, sensor, seed=0):
         """Where a render starts: its :class:`~mitsuba_pbrt_tex.render_scope.RenderScope`, and
         the sensor Mitsuba's ``render`` methods are given — the sensor itself, except with
-        ``footprint="pixel"``, a Gaussian film filter and a texture that reads differentials:
-        then the render's offsets (:class:`~mitsuba_pbrt_tex.film_view.FilterPixels`) and a
-        view of the sensor that counts each sample in the pixel it decodes to
-        (:class:`~mitsuba_pbrt_tex.film_view.PixelSensor`, carrying the scope)."""
+        ``footprint="pixel"``, a Gaussian film filter and a texture that filters its kernel
+        (``pbrt_imagemap`` ``box``): then the render's offsets
+        (:class:`~mitsuba_pbrt_tex.film_view.FilterPixels`) and a view of the sensor that counts
+        each sample in the pixel it decodes to (:class:`~mitsuba_pbrt_tex.film_view.PixelSensor`,
+        carrying the scope). Without such a texture a Gaussian film renders as Mitsuba's, each
+        sample splatted by the film: counting it in one pixel would cost noise for nothing."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        if self.footprint_mode != 'pixel' or not self.scene_needs(scene).differentials:
+        needs = self.scene_needs(scene)
+        if self.footprint_mode != 'pixel' or not needs.differentials:
             return sensor
         self.pixel_sensor(sensor)       # the errors, in our words (only textures that read
         #                                 the footprint make the sensor and film matter)
         film = sensor.film()
-        if film.rfilter().class_name() == 'BoxFilter':
+        if film.rfilter().class_name() == 'BoxFilter' or not needs.film_kernel:
             return sensor
         return film_view.PixelSensor(RenderScope(sensor, film_view.FilterPixels(film, seed)))
 
@@ -341,10 +344,17 @@ class Plugin:
             scope = self._handover if own else RenderScope(scene.sensors()[0])
             inputs = self.trace_inputs(scene, sampler, scope.sensor, own_rays=own)
             pixels = inputs.needs.differentials and self.pixel_sensor(scope.sensor) is not None
-            if pixels and scope.pixels is None and \
-                    scope.sensor.film().rfilter().class_name() != 'BoxFilter':
+            gaussian = scope.sensor.film().rfilter().class_name() != 'BoxFilter'
+            if pixels and gaussian and not inputs.needs.film_kernel:
+                pixels = False          # (no texture filters the film's kernel: see begin())
+            elif pixels and scope.pixels is None and gaussian:
                 # a Gaussian film, but the rays are not ours (sample() called without render()):
-                # the textures keep the sample's footprint
+                # the textures keep the sample's footprint — said, not silent
+                mi.Log(mi.LogLevel.Warn, f'{self.NAME}: footprint="pixel" with a gaussian film '
+                       f'needs the camera rays of {self.NAME}\'s own render(); these come from '
+                       f'elsewhere (Mitsuba\'s moment integrator, or sample() called directly), '
+                       f'so camera hits keep the sample\'s footprint (a box film keeps pixel '
+                       f'footprints there)')
                 pixels = False
             if not pixels:
                 return self.trace(mode, scene, sampler, ray, δL, state_in, active, inputs,
