@@ -141,6 +141,10 @@ def _replace_section(text: str, markers: tuple[str, str], body: str, path: str) 
     return re.sub(pattern, lambda m: markers[0] + '\n' + body + markers[1], text, flags=re.S)
 
 
+#: How the results.md of ``bench render --quick`` begins.
+QUICK_MARK = 'Smoke test (--quick'
+
+
 def _summary_scenes(summary: str) -> set:
     """The scenes a benchmark summary has lines for (``- **scene**…``)."""
     import re
@@ -175,10 +179,6 @@ def _bench_summary(bench_results: str, readme: str) -> str:
                          f'which the README has (a run of some scenes: splice its rows into '
                          f'the full report first); nothing was changed')
     return summary
-
-
-#: How the results.md of ``bench render --quick`` begins.
-QUICK_MARK = 'Smoke test (--quick'
 
 
 def update_readme(path: str, bench_results: str | None = None) -> bool:

@@ -106,7 +106,8 @@ def _compose(path, left, right, left_title, right_title):
 def main(argv=None) -> int:
     from ..cli import command_parser
     ap = command_parser('demo horizon', __doc__)
-    ap.add_argument('--out', type=output_folder, default='renders', help='output folder (default renders)')
+    ap.add_argument('--out', type=output_folder, default='renders',
+                    help='output folder (default renders)')
     ap.add_argument('--width', type=positive_int, default=480, help='image width (pixels)')
     ap.add_argument('--height', type=positive_int, default=270, help='image height (pixels)')
     ap.add_argument('--repeats', type=positive_int, default=3,

@@ -247,7 +247,8 @@ def plots(history, truth, finals, target_view, out_dir):
 def main(argv=None) -> int:
     from ..cli import command_parser
     ap = command_parser('demo inverse', __doc__)
-    ap.add_argument('--out', type=output_folder, default='demo-out', help='output folder (default demo-out)')
+    ap.add_argument('--out', type=output_folder, default='demo-out',
+                    help='output folder (default demo-out)')
     ap.add_argument('--iterations', type=positive_int, default=None,
                     help='optimisation steps (default 60; 3 with --quick)')
     ap.add_argument('--res', type=positive_int, default=None,
