@@ -69,9 +69,9 @@ def scene_inputs(scene_path: str, params: dict | None = None) -> set[str]:
         except (ET.ParseError, OSError):
             return                      # Mitsuba reports this file when it loads the scene
         roots.append((path, root))
-        for el in root.iter('default'):
+        for el in root.iter('default'):     # (its value substituted as Mitsuba parses it)
             if el.get('name') is not None and el.get('value') is not None:
-                defaults.setdefault(el.get('name'), el.get('value'))
+                defaults.setdefault(el.get('name'), _replaced(el.get('value'), defaults))
         for el in root.iter('path'):            # <path value="..."/> extends the resolver
             for value in substituted(el.get('value') or ''):
                 if value:
@@ -87,13 +87,8 @@ def scene_inputs(scene_path: str, params: dict | None = None) -> set[str]:
         replaces the text ``$name`` for each parameter in turn (so ``$wx`` reads ``$w``'s
         value when only ``w`` is given, and any name works, also ``1img`` or ``my-mode``);
         a whole-word substitution too. Protecting too much only refuses an output name."""
-        out = {_VAR_RE.sub(lambda m: defaults.get(m.group(1), m.group(0)), value)}
-        for order in (list(defaults), sorted(defaults, key=len, reverse=True)):
-            text = value
-            for name in order:
-                text = text.replace('$' + name, defaults[name])
-            out.add(text)
-        return out
+        return {_VAR_RE.sub(lambda m: defaults.get(m.group(1), m.group(0)), value),
+                _replaced(value, defaults, list(defaults)), _replaced(value, defaults)}
 
     def folders(doc_path):
         base = [os.path.dirname(scene_path), os.path.dirname(os.path.abspath(doc_path))]
@@ -113,6 +108,14 @@ def scene_inputs(scene_path: str, params: dict | None = None) -> set[str]:
                         if os.path.isfile(c):
                             found.add(os.path.realpath(c))
     return found
+
+
+def _replaced(value: str, params: dict, order=None) -> str:
+    """``value`` with the text ``$name`` replaced by each parameter's value in turn (``order``,
+    by default the longest names first), as Mitsuba's loader substitutes."""
+    for name in order if order is not None else sorted(params, key=len, reverse=True):
+        value = value.replace('$' + name, params[name])
+    return value
 
 
 # ------------------------------------------------------------------------------ outputs

@@ -119,6 +119,7 @@ PERIODIC = {'repeat': 1.0, 'mirror': 2.0}
 
 def first_period(st, mode: str):
     """Texture coordinate ``st`` moved by whole periods of ``mode`` (one of :data:`PERIODIC`)
-    into ``[0, period)`` (exact: the period is a power of two)."""
+    into ``[0, period]`` (exact: the period is a power of two; a tiny negative ``st`` rounds to
+    the period itself, the same place once wrapped)."""
     period = PERIODIC[mode]
     return st - dr.floor(st * (1.0 / period)) * period

@@ -14,7 +14,7 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 | texture_differentials | boolean | true | compute differentials (also needs a texture that uses them) | no |
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
 | footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` or `gaussian` film filter) | no |
-| silhouette_spp | integer | 0 | `footprint="pixel"` (0 to 65536): this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels); primal renders only | no |
+| silhouette_spp | integer | 0 | `footprint="pixel"` (0 to 65536): this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels), in scenes with a texture that filters the film's kernel (`pbrt_imagemap` `box`); primal renders only; no effect where pixel footprints do not apply | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (the uv partials the textures read at the first hit, scaled by `spp_scale` as they are; 0 where no texture reads them or `texture_differentials` is false; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
@@ -347,6 +347,14 @@ class Plugin:
             gaussian = scope.sensor.film().rfilter().class_name() != 'BoxFilter'
             if pixels and gaussian and not inputs.needs.film_kernel:
                 pixels = False          # (no texture filters the film's kernel: see begin())
+            elif pixels and not own and len(scene.sensors()) > 1:
+                # rays from elsewhere, and no telling which sensor's: said, not guessed
+                mi.Log(mi.LogLevel.Warn, f'{self.NAME}: footprint="pixel" needs to know the '
+                       f'sensor of the camera rays; these come from elsewhere (Mitsuba\'s '
+                       f'moment or aov integrator, or sample() called directly) in a scene of '
+                       f'{len(scene.sensors())} sensors, so camera hits keep the sample\'s '
+                       f'footprint')
+                pixels = False
             elif pixels and scope.pixels is None and gaussian:
                 # a Gaussian film, but the rays are not ours (sample() called without render()):
                 # the textures keep the sample's footprint — said, not silent

@@ -176,6 +176,12 @@ def test_scene_parameters_protect_inputs_under_any_name_mitsuba_takes(tmp_path):
     assert str((tmp_path / 'inx.png').resolve()) not in found          # '$wx' -> 'inx'
     (tmp_path / 'inx').write_text('mine')
     assert str((tmp_path / 'inx').resolve()) in scene_inputs(str(scene), {'w': 'in', '1img': 'x'})
+    # a <default> whose value names another parameter: Mitsuba substitutes it as it parses it
+    chained = tmp_path / 'chained.xml'
+    chained.write_text('<scene version="3.0.0"><default name="img" value="$base"/>'
+                       '<texture type="bitmap"><string name="filename" value="$img.exr"/>'
+                       '</texture></scene>')
+    assert str((tmp_path / 'in.exr').resolve()) in scene_inputs(str(chained), {'base': 'in'})
 
 
 def test_render_errors_are_clear(tmp_path):

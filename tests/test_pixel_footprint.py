@@ -416,6 +416,24 @@ def two_sensor_scene(tex, rfilter='box', same_place=False):
             **{k: v for k, v in d.items() if k != 'type'}}
 
 
+def test_rays_of_another_integrator_in_a_scene_of_two_sensors_keep_the_sample_footprint(
+        rng, capfd):
+    """Mitsuba's ``moment`` hands ``pbrt_path.sample()`` rays of its own, and in a scene of two
+    sensors nothing tells which one they come from: camera hits keep the sample's footprint
+    (the image equals ``footprint="sample"``'s, to float32 rounding) and a warning says so —
+    the first sensor was assumed (a render of the second through ``moment`` took pixel
+    footprints of the wrong camera; found in a review)."""
+    tex = box_texture(rng, size=16, tiles=2.0)
+    images = {}
+    for footprint in ('pixel', 'sample'):
+        d = two_sensor_scene(tex)
+        d['integrator'] = {'type': 'moment', 'inner': dict(d['integrator'], footprint=footprint)}
+        images[footprint] = np.array(mi.render(mi.load_dict(d), spp=1, seed=4, sensor=1))
+    np.testing.assert_allclose(images['pixel'], images['sample'], rtol=1e-6, atol=1e-7)
+    said = capfd.readouterr()               # Mitsuba's logger writes to the console's stdout
+    assert 'needs to know the sensor of the camera rays' in said.out + said.err
+
+
 def test_second_sensor_gets_its_own_pixel_footprint(rng):
     """``mi.render(scene, sensor=1)``: the textures must see the pixel of the sensor rendered,
     not the scene's first one. The second sensor is the one of the other tests, so the checks
