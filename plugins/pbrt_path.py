@@ -311,6 +311,16 @@ class Plugin:
         self._handover = scope
         return ray, weight, pos
 
+    def _foreign_rays(self, need: str, where: str) -> bool:
+        """Camera rays that are not this integrator's render's (Mitsuba's ``moment``, a
+        ``sample()`` called directly) where pixel footprints cannot apply: the textures keep
+        the sample's footprint, with a warning (not silently). Returns False (no pixel
+        footprints)."""
+        mi.Log(mi.LogLevel.Warn, f'{self.NAME}: footprint="pixel" {need}; these come from '
+               f'elsewhere (Mitsuba\'s moment integrator, or sample() called directly) {where}, '
+               f'so camera hits keep the sample\'s footprint')
+        return False
+
     def pixel_sensor(self, sensor):
         """The sensor whose pixels textures centre on for ``footprint="pixel"`` (None for
         ``sample``); an error names what does not fit."""
@@ -349,21 +359,13 @@ class Plugin:
                 pixels = False          # (no texture filters the film's kernel: see begin())
             elif pixels and not own and len(scene.sensors()) > 1:
                 # rays from elsewhere, and no telling which sensor's: said, not guessed
-                mi.Log(mi.LogLevel.Warn, f'{self.NAME}: footprint="pixel" needs to know the '
-                       f'sensor of the camera rays; these come from elsewhere (Mitsuba\'s '
-                       f'moment or aov integrator, or sample() called directly) in a scene of '
-                       f'{len(scene.sensors())} sensors, so camera hits keep the sample\'s '
-                       f'footprint')
-                pixels = False
+                pixels = self._foreign_rays('needs to know the sensor of the camera rays', 'in '
+                                            f'a scene of {len(scene.sensors())} sensors')
             elif pixels and scope.pixels is None and gaussian:
-                # a Gaussian film, but the rays are not ours (sample() called without render()):
-                # the textures keep the sample's footprint — said, not silent
-                mi.Log(mi.LogLevel.Warn, f'{self.NAME}: footprint="pixel" with a gaussian film '
-                       f'needs the camera rays of {self.NAME}\'s own render(); these come from '
-                       f'elsewhere (Mitsuba\'s moment integrator, or sample() called directly), '
-                       f'so camera hits keep the sample\'s footprint (a box film keeps pixel '
-                       f'footprints there)')
-                pixels = False
+                # a Gaussian film, but the rays are not ours (sample() called without render())
+                pixels = self._foreign_rays(f'with a gaussian film needs the camera rays of '
+                                            f'{self.NAME}\'s own render()',
+                                            '(a box film keeps pixel footprints there)')
             if not pixels:
                 return self.trace(mode, scene, sampler, ray, δL, state_in, active, inputs,
                                   RenderScope(scope.sensor))[:4]
