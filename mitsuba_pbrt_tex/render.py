@@ -305,6 +305,9 @@ def _sample_plan(sensor, spp):
     passes, per_pass = _passes(total)
     size = sensor.film().crop_size()
     pixels = int(size[0]) * int(size[1])
+    if pixels < 1:              # (Mitsuba's film takes a width or height of 0)
+        raise RenderError(f"the film's size is {size[0]}x{size[1]}: give it a width and a "
+                          f"height >= 1")
     if per_pass * pixels >= 2**32:
         where = '--spp' if spp is not None else "the scene's sample_count"
         raise RenderError(f'{where} {total} is too many for one image of {size[0]}x{size[1]}: a '

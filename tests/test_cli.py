@@ -146,6 +146,10 @@ def test_render_sets_scene_parameters_and_protects_what_they_name(small_scene, t
     assert r.returncode == 2 and 'unused parameters' in r.stderr and 'nonsense' in r.stderr
     r = cli('render', str(small_scene), '-o', str(out), '-D', 'w', check=False)
     assert r.returncode == 2 and 'argument -D: expected NAME=VALUE' in r.stderr
+    # Mitsuba's film takes a width of 0; Dr.Jit then failed with an internal size error
+    r = cli('render', os.path.join(ROOT, 'scenes', 'demo.xml'), '-o', str(out), '-D', 'width=0',
+            check=False)
+    assert r.returncode == 2 and "the film's size is 0x270" in r.stderr, r.stderr
     before = (tmp_path / 'other.png').read_bytes()
     r = cli('render', str(small_scene), '-o', str(tmp_path / 'other.exr'), '-D',
             'image=other.png', check=False)
