@@ -277,13 +277,12 @@ def _near_origin(s, wrap):
 
 
 def _near_image(c, half, w, h, wrap):
-    """The footprint's centre moved by whole periods (repeat, mirror) into the first one, or
-    (clamp, black) no farther than its half extent beyond the knots next to the image, where the
-    reconstruction is constant along that axis: the same average, small coordinates."""
-    if wrap in ('repeat', 'mirror'):
-        n = 1 if wrap == 'repeat' else 2
-        return mi.Point2f(c.x - dr.floor(c.x / (n * w)) * (n * w),
-                          c.y - dr.floor(c.y / (n * h)) * (n * h))
+    """The footprint's centre, (clamp, black) moved no farther than its half extent beyond the
+    knots next to the image, where the reconstruction is constant along that axis: the same
+    average, small coordinates. (Repeat and mirror centres are in the first period already:
+    :func:`_near_origin`.)"""
+    if wrap in PERIODIC:
+        return c
     return mi.Point2f(dr.clip(c.x, -1 - half.x, w + half.x), dr.clip(c.y, -1 - half.y, h + half.y))
 
 

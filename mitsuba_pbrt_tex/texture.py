@@ -86,8 +86,9 @@ def uses_differentials(tex) -> bool:
 
 def filters_film_kernel(tex) -> bool:
     """Does ``tex`` (any texture) filter the film's own kernel around the pixel centre under
-    ``pbrt_path`` ``footprint="pixel"`` with a Gaussian film (``pbrt_imagemap`` ``box``, also
-    nested)? Only then does such a render draw its camera samples per pixel from the filter
+    ``pbrt_path`` ``footprint="pixel"`` with a Gaussian film (``pbrt_imagemap`` ``box``, which
+    says so; a nested one is found by the scene's traversal, which lists nested textures too)?
+    Only then does such a render draw its camera samples per pixel from the filter
     (:mod:`mitsuba_pbrt_tex.film_view`); other textures keep the sample's footprint there, and
     Mitsuba's own or a user's textures never filter it."""
     method = getattr(tex, 'filters_film_kernel', None)
@@ -238,10 +239,6 @@ class PbrtTexture:
 
     def is_spatially_varying(self) -> bool:
         return True
-
-    def filters_film_kernel(self) -> bool:
-        """See :func:`filters_film_kernel`: a texture does where a nested one does."""
-        return any(filters_film_kernel(t) for t in self._nested.values())
 
     def nested_vary(self) -> bool:
         """Whether any nested texture is spatially varying: a composite's own answer, where its
