@@ -131,6 +131,7 @@ class PbrtTexture:
         p = Params(self.NAME, props)
         self.configure(p)
         p.finish()
+        self._accepted = self._settable_values()
 
     def configure(self, p: Params) -> None:
         """Read parameters and build library objects (override)."""
@@ -282,7 +283,24 @@ class PbrtTexture:
                    else mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys=None) -> None:
+        """Check what ``params.update()`` set (Mitsuba has already written it into this
+        texture's parameters and its nested constants), then :meth:`on_parameters_changed`. A
+        refusal puts back the values this texture last accepted — the one refused and any
+        other set in the same update — before it raises: a texture whose parameters were
+        refused renders as before (and ``params[key]`` reads the accepted value again), where
+        a refused ``data`` shape ended the next render inside Dr.Jit and a refused NaN ``scale``
+        rendered NaN (found by a user trial)."""
         keys = list(keys or [])
+        try:
+            self._check_update(keys)
+            self.on_parameters_changed(keys)
+        except PluginError:
+            self._restore(self._accepted)
+            self.on_parameters_changed(keys)        # the state of the values put back
+            raise
+        self._accepted = self._settable_values()
+
+    def _check_update(self, keys: list[str]) -> None:
         for name in keys or [*self._values, *self._nested]:
             if name in self._values:
                 check_value_update(self.NAME, name, self._values[name][0])
@@ -294,7 +312,38 @@ class PbrtTexture:
                     if dr.is_jit_v(type(inner[key])):
                         check_value_update(self.NAME, f'{name}.{key}', inner[key],
                                            check_width=False)
-        self.on_parameters_changed(keys)
+
+    def _settable_values(self) -> dict:
+        """What ``params.update()`` can write in place: this texture's traversed values and
+        the parameters of its nested constants (a Mitsuba ``srgb``, ``uniform``), as ``{(name,
+        key): copy}`` (``key`` None for the texture's own) — copies that refer to the same
+        variables (no memory of their own), which :meth:`_restore` writes back."""
+        own = _Collect()
+        self.traverse(own)
+        out = {}
+        for name, value in own.values.items():
+            if name in self._nested:
+                if not value.is_spatially_varying():
+                    inner = mi.traverse(value)
+                    out.update({(name, key): _copy(inner[key]) for key in inner.keys()
+                                if dr.is_jit_v(type(inner[key]))})
+            else:
+                out[(name, None)] = _copy(value)
+        return out
+
+    def _restore(self, accepted: dict) -> None:
+        """Write the values of :meth:`_settable_values` back where they came from."""
+        own = _Collect()
+        self.traverse(own)
+        nested = {}
+        for (name, key), value in accepted.items():
+            if key is None:
+                mi.set_property(own.values[name], value)
+            else:
+                inner = nested.setdefault(name, mi.traverse(own.values[name]))
+                inner[key] = value
+        for inner in nested.values():
+            inner.update()
 
     def on_parameters_changed(self, keys: list[str]) -> None:
         """React to changed parameters (override)."""
@@ -308,13 +357,30 @@ class PbrtTexture:
         return f'{self.NAME}[' + ', '.join(parts) + ']'
 
 
+class _Collect:
+    """A traversal callback that keeps what a texture's ``traverse`` puts, by name."""
+
+    def __init__(self):
+        self.values = {}
+
+    def put(self, name, value, flags=None):
+        self.values[name] = value
+
+
+def _copy(value):
+    """A new object for the same value (Dr.Jit arrays: the same variable; a transform: its
+    matrix)."""
+    return type(value)(value)
+
+
 def check_value_update(plugin: str, name: str, value, check_width: bool = True) -> None:
     """A value set through ``mi.traverse`` must be one number (or colour), as at construction
     (a wider array failed inside Dr.Jit's call of the texture), and finite (a NaN or inf
-    parameter would put NaN or inf in every image): else an error naming the fix (the value
-    stays set until a valid one replaces it). The finiteness check is skipped, as the texels'
-    checks are, for values with gradients (an optimiser's step: reading them back would cost a
-    synchronisation per step) and while ``dr.freeze`` records (which cannot read values back).
+    parameter would put NaN or inf in every image): else an error naming the fix (the texture
+    puts its accepted values back: :meth:`PbrtTexture.parameters_changed`). The finiteness
+    check is skipped, as the texels' checks are, for values with gradients (an optimiser's
+    step: reading them back would cost a synchronisation per step) and while ``dr.freeze``
+    records (which cannot read values back).
     ``check_width`` false: a nested Mitsuba texture's parameter, whose width is its own business
     (a spectrum's table has several values)."""
     if check_width and dr.width(value) != 1:

@@ -406,7 +406,7 @@ def test_nonfinite_parameters_through_params_update_are_refused(case, bad):
         'type': 'diffuse', 'reflectance': tex}}})
     p = mi.traverse(scene)
     full = 'shape.bsdf.reflectance.' + key
-    value = p[full]
+    value, before = p[full], A(p[full])
     p[full] = mi.Color3f(0.2, bad, 0.3) if isinstance(value, mi.Color3f) else type(value)(bad)
     with pytest.raises(Exception) as e:
         p.update()
@@ -415,6 +415,10 @@ def test_nonfinite_parameters_through_params_update_are_refused(case, bad):
     for word in (f'{plugin}: parameter "{name}"', 'set through mi.traverse is not finite',
                  'accepted values: finite numbers'):
         assert word in text, (word, text)
+    # the refused value is not kept: the texture has the value it had (it stayed, and a render
+    # after the refusal was NaN or inf everywhere)
+    np.testing.assert_array_equal(A(p[full]), before)
+    np.testing.assert_array_equal(A(mi.traverse(scene)[full]), before)
 
 
 @pytest.mark.parametrize('tex, key, width', [
@@ -429,11 +433,61 @@ def test_parameters_of_another_width_through_params_update_are_refused(tex, key,
     scene = mi.load_dict({'type': 'scene', 'shape': {'type': 'rectangle', 'bsdf': {
         'type': 'diffuse', 'reflectance': tex}}})
     p = mi.traverse(scene)
-    p['shape.bsdf.reflectance.' + key] = dr.full(mi.Float, 0.5, width)
+    full = 'shape.bsdf.reflectance.' + key
+    before = A(p[full])
+    p[full] = dr.full(mi.Float, 0.5, width)
     with pytest.raises(Exception) as e:
         p.update()
     assert f'{tex["type"]}: parameter "{key}": a value of width {width} set through ' \
         f'mi.traverse; accepted values: one number or colour' in str(e.value)
+    np.testing.assert_array_equal(A(p[full]), before)      # put back (see below)
+
+
+@pytest.mark.parametrize('filt, footprint, film', [('bilinear', 'sample', 'gaussian'),
+                                                   ('ewa', 'sample', 'gaussian'),
+                                                   ('box', 'pixel', 'box'),
+                                                   ('box', 'pixel', 'gaussian')])
+def test_refused_updates_leave_the_texture_as_it_was(filt, footprint, film):
+    """params.update() refuses a data tensor of a shape other than (H, W, 1|3) and a NaN scale;
+    the texture then puts back what it last accepted — also a valid value set in the same
+    update — so the next render is the one before. Found in a user trial: the refused tensor
+    stayed in the texture and the next render ended inside Dr.Jit ('tuple index out of range',
+    a loop state changing type) or, for box + pixel footprints, whatever the shape; a NaN scale
+    rendered NaN everywhere."""
+    texels = np.random.default_rng(3).random((8, 8, 3)).astype(np.float32)
+
+    def load(scale):
+        return mi.load_dict({
+            'type': 'scene', 'integrator': {'type': 'pbrt_path', 'footprint': footprint},
+            'sensor': {'type': 'perspective', 'fov': 40, 'to_world': mi.ScalarTransform4f()
+                       .look_at([0, -2, 1], [0, 0, 0], [0, 0, 1]),
+                       'film': {'type': 'hdrfilm', 'width': 12, 'height': 8,
+                                'rfilter': {'type': film}}},
+            'light': {'type': 'constant'},
+            'plane': {'type': 'rectangle', 'bsdf': {'type': 'diffuse', 'reflectance': {
+                'type': 'pbrt_imagemap', 'filter': filt, 'scale': scale,
+                'data': mi.TensorXf(texels)}}}})
+
+    scene = load(1.0)
+    before = mi.render(scene, spp=2, seed=1).numpy()
+    p = mi.traverse(scene)
+    data, scale = 'plane.bsdf.reflectance.data', 'plane.bsdf.reflectance.scale'
+    shape = p[data].shape
+    for bad in ((192,), (8, 8), (8, 8, 2), (8, 8, 4)):
+        p[data] = mi.TensorXf(np.full(bad, 0.5, np.float32))
+        p[scale] = mi.Float(0.5)                    # valid, but in the refused update
+        with pytest.raises(Exception, match='parameter "data": expected shape'):
+            p.update()
+        assert p[data].shape == shape and A(p[scale])[0] == 1.0, bad
+        np.testing.assert_array_equal(mi.render(scene, spp=2, seed=1).numpy(), before)
+    p[scale] = mi.Float(float('nan'))
+    with pytest.raises(Exception, match='parameter "scale"'):
+        p.update()
+    np.testing.assert_array_equal(mi.render(scene, spp=2, seed=1).numpy(), before)
+    p[scale] = mi.Float(0.5)                        # and a valid update still works
+    p.update()
+    np.testing.assert_allclose(mi.render(scene, spp=2, seed=1).numpy(),
+                               mi.render(load(0.5), spp=2, seed=1).numpy(), rtol=1e-6, atol=1e-7)
 
 
 def test_large_finite_rgb_values_through_params_update_are_accepted():
