@@ -78,6 +78,17 @@ class TextureEvalContext:
                                   dudx=one, dudy=zero, dvdx=zero, dvdy=one)
 
 
+def with_shifting_fields(si: mi.SurfaceInteraction3f) -> mi.SurfaceInteraction3f:
+    """A copy of ``si`` in which what a lookup moved along u or v reads — ``uv``, ``p``,
+    ``dp_du``, ``dp_dv``, ``duv_dx``, ``duv_dy`` — is 0 where a bare interaction left it empty
+    (see :func:`_field`), so that it can be shifted."""
+    out = mi.SurfaceInteraction3f(si)
+    for name, cls in (('uv', mi.Point2f), ('p', mi.Point3f), ('dp_du', mi.Vector3f),
+                      ('dp_dv', mi.Vector3f), ('duv_dx', mi.Vector2f), ('duv_dy', mi.Vector2f)):
+        setattr(out, name, _field(si, name, cls))
+    return out
+
+
 def _field(si, name: str, cls):
     """``si.<name>`` as ``cls``; 0 where the caller left it empty.
 

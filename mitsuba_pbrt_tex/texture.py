@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import render_scope, variants
-from .differentials import TextureEvalContext
+from .differentials import TextureEvalContext, with_shifting_fields
 from .params import Params, PluginError
 
 
@@ -173,8 +173,10 @@ class PbrtTexture:
         ``uv + (du, 0)``, the differentials kept) and along v, with ``du = (|∂u/∂x| +
         |∂u/∂y|)/2`` from the hit's differentials (``dv`` likewise) or :data:`BUMP_DELTA` where
         that is 0 or not finite (Mitsuba's own integrators give none). Image textures override
-        it with the exact gradient of their reconstruction."""
+        it (point, bilinear and trilinear lookups: the exact gradient of their reconstruction).
+        A bare interaction (only ``uv`` set) is read with zero differentials, as elsewhere."""
         active = mi.Bool(active)
+        si = with_shifting_fields(si)
         f = self.eval_1(si, active)
         grad = []
         for axis, dp in enumerate((si.dp_du, si.dp_dv)):

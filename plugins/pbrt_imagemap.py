@@ -57,8 +57,8 @@ their ``data`` is updated.
 magnification; a float32 walk of the footprint's boundary over the texels of the finest level
 where its short side is at most :data:`~mitsuba_pbrt_tex.box.MAX_BANDS` texels and its perimeter
 at most :data:`~mitsuba_pbrt_tex.box.MAX_PERIMETER` (see :mod:`mitsuba_pbrt_tex.box`), with no
-table beside the pyramid (the "tables" are AD aliases of its buffer). ``eval_1_grad`` is that of
-``trilinear``. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
+table beside the pyramid (the "tables" are AD aliases of its buffer). ``eval_1_grad``: see
+*Gradients* below. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
 their pixel's footprint (every sample of a pixel sees its average; right for albedo and
 emission, not for roughness or bump maps, whose shading is not linear in the texture — use
 another filter there). With a Gaussian film filter they filter the film filter's own kernel
@@ -86,8 +86,10 @@ set is evaluated with zero differentials.
 
 Gradients: ``data`` and ``scale`` are differentiable through every filter; the pyramid is rebuilt
 inside the AD graph by ``parameters_changed`` (``params.update()``) — also when it is built lazily
-during a render — so gradients reach base texels through coarse levels. ``eval_1_grad`` (for ``bumpmap``) is the gradient of the bilinear
-reconstruction at the selected level(s).
+during a render — so gradients reach base texels through coarse levels. ``eval_1_grad`` (for
+``bumpmap``) is the exact gradient of point, bilinear and trilinear lookups and, where the hit has
+differentials, pbrt-v4's ``BumpMap`` difference of ``ewa`` and ``box`` values (see
+:meth:`Plugin.eval_1_grad`).
 """
 
 import difflib
@@ -393,7 +395,24 @@ class Plugin(PbrtTexture):
         return kind.from_rgb(v) if self.channels == 3 else kind.from_float(v)
 
     def eval_1_grad(self, si, active=True):
+        """``d eval_1 / d(u, v)`` for ``bumpmap``: the exact gradient of point, bilinear and
+        trilinear lookups (:meth:`TextureFilter.gradient`). ``ewa`` and ``box`` values are not
+        smooth on the texel scale — EWA's table weights make it a step function there, and the
+        slope of the box's area average changes wherever its outline crosses a texel — so where
+        the hit has differentials their gradient is pbrt-v4's ``BumpMap`` difference of the
+        filtered value over half the footprint (:meth:`PbrtTexture.eval_1_grad`, as for the
+        procedural textures and as pbrt renders bump maps of them); without differentials both
+        are the bilinear lookup of level 0, whose exact gradient (``bitmap``'s) they keep."""
         active = mi.Bool(active)
+        if self.filter_name not in ('ewa', 'box'):
+            return self._exact_gradient(si, active)
+        ctx = TextureEvalContext.from_si(si)
+        footprint = (ctx.dudx != 0) | (ctx.dudy != 0) | (ctx.dvdx != 0) | (ctx.dvdy != 0)
+        exact = self._exact_gradient(si, active & ~footprint)
+        difference = PbrtTexture.eval_1_grad(self, si, active & footprint)
+        return dr.select(footprint, difference, exact)
+
+    def _exact_gradient(self, si, active):
         tc = self.mapping.map(self.context(si))
         # inverted RGB: eval_1 is the luminance of max(0, 1 - scale·rgb) channel by channel, so
         # each channel's slope counts where that channel is not clipped

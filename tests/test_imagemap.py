@@ -886,6 +886,56 @@ def test_eval_1_grad_with_footprint_matches_finite_differences(filt, convention,
     np.testing.assert_allclose(got[ok], fd[ok], rtol=1e-2, atol=2e-3)
 
 
+@pytest.mark.parametrize('filt', ['ewa', 'box'])
+def test_eval_1_grad_of_ewa_and_box_is_pbrts_bump_difference(filt, rng):
+    """``ewa`` and ``box`` values are not smooth on the texel scale (EWA's table weights; the
+    box average's slope changes where its outline crosses a texel), so with differentials their
+    ``eval_1_grad`` is pbrt-v4's ``BumpMap`` forward difference of the filtered value, computed
+    here from the texture's own ``eval_1``: du = (|du/dx| + |du/dy|)/2 (0.0005 where that is 0),
+    uv + (du, 0) and p + du·dp/du, the differentials kept; likewise in v. It was trilinear's
+    gradient whatever the filter (found in a user trial: a bump map shaded the same through
+    trilinear, EWA and box). Lanes without differentials keep the exact level-0 bilinear
+    gradient, which is bitmap's (both filters are that bilinear lookup there). The same lookups
+    at the same float32 uv (the shift added in float32, as the texture does): equal to float32
+    rounding of the quotient (rtol 1e-5)."""
+    res = 32
+    img = rng.random((res, res, 3)).astype(np.float32)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'filter': filt,
+                        'uscale': 2.0})
+    tex.prepare_differentials()
+    n = 300
+    f32 = np.float32
+    uv = rng.uniform(0.05, 0.9, (n, 2)).astype(f32)
+    d0 = (rng.uniform(-3, 3, (n, 2)) / res).astype(f32)
+    d1 = (rng.uniform(-3, 3, (n, 2)) / res).astype(f32)
+    d0[:40] = d1[:40] = 0                       # no differentials
+    d0[40:80, 0] = d1[40:80, 0] = 0             # none in u: du = 0.0005 there
+    p = np.concatenate([uv, np.zeros((n, 1), f32)], 1)
+    dp_du, dp_dv = [1, 0, 0], [0, 1, 0]
+    si = make_si(uv, d0, d1, p=p, dp_du=dp_du, dp_dv=dp_dv)
+    f = A(tex.eval_1(si))
+    want = np.zeros((n, 2))
+    for axis in (0, 1):
+        d = f32(0.5) * (np.abs(d0[:, axis]) + np.abs(d1[:, axis]))
+        d = np.where(d > 0, d, f32(0.0005))
+        shift = np.zeros((n, 2), f32)
+        shift[:, axis] = d
+        moved = make_si(uv + shift, d0, d1, p=p + np.concatenate([shift, np.zeros((n, 1), f32)],
+                                                                 1), dp_du=dp_du, dp_dv=dp_dv)
+        want[:, axis] = (A(tex.eval_1(moved)) - f) / d
+    got = A(tex.eval_1_grad(si))
+    np.testing.assert_allclose(got[40:], want[40:], rtol=1e-5, atol=1e-5)
+    bitmap = mi.load_dict({'type': 'bitmap', 'data': mi.TensorXf(img), 'raw': True,
+                           'to_uv': mi.ScalarTransform4f().scale([2, 1, 1])})
+    np.testing.assert_allclose(got[:40], A(bitmap.eval_1_grad(make_si(uv[:40]))), rtol=1e-4,
+                               atol=1e-4 * 2 * res)
+    # not trilinear's: the filters differ
+    tri = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img),
+                        'filter': 'trilinear', 'uscale': 2.0})
+    tri.prepare_differentials()
+    assert np.median(np.abs(got[80:] - A(tri.eval_1_grad(si))[80:])) > 0.1
+
+
 @pytest.mark.parametrize('invert', [False, True])
 def test_eval_1_grad_of_point_filter_is_zero_like_bitmap_nearest(invert, rng):
     """``filter="point"`` is piecewise constant: ``eval_1_grad`` is 0 with or without a
