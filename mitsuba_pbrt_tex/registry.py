@@ -22,6 +22,7 @@ import mitsuba as mi
 
 from . import variants
 from .params import PluginError
+from .texture import install_update_rollback
 from .variants import UnsupportedVariantError
 
 TEXTURES = (
@@ -111,6 +112,7 @@ def register() -> None:
     if variants.support_problem(mi.variant()) is None:
         from .image import srgb8_table
         srgb8_table()            # on this thread, not inside a constructor on a worker thread
+    install_update_rollback()
     for name in TEXTURES:
         mi.register_texture(name, plugin_class(name))
     for name in INTEGRATORS:

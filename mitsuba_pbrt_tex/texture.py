@@ -175,9 +175,12 @@ class PbrtTexture:
         that is 0 or not finite (Mitsuba's own integrators give none). Image textures override
         it (point, bilinear and trilinear lookups: the exact gradient of their reconstruction).
         A bare interaction (only ``uv`` set) is read with zero differentials, as elsewhere."""
-        active = mi.Bool(active)
+        return self.bump_difference(si, mi.Bool(active), self.eval_1)
+
+    def bump_difference(self, si, active, eval_1) -> mi.Vector2f:
+        """:meth:`eval_1_grad`'s difference of the values ``eval_1(si, active)``."""
         si = with_shifting_fields(si)
-        f = self.eval_1(si, active)
+        f = eval_1(si, active)
         grad = []
         for axis, dp in enumerate((si.dp_du, si.dp_dv)):
             d = 0.5 * (dr.abs(si.duv_dx[axis]) + dr.abs(si.duv_dy[axis]))
@@ -186,7 +189,7 @@ class PbrtTexture:
             moved.p = dr.fma(dp, d, si.p)
             moved.uv = mi.Point2f(si.uv)
             moved.uv[axis] = si.uv[axis] + d
-            grad.append((self.eval_1(moved, active) - f) / d)
+            grad.append((eval_1(moved, active) - f) / d)
         return finite_gradient(mi.Vector2f(*grad))
 
     def _lookup(self, si, kind: Kind, active):
@@ -357,6 +360,45 @@ class PbrtTexture:
         for name, (value, _) in self._values.items():
             parts.append(f'{name}={_short(value)}')
         return f'{self.NAME}[' + ', '.join(parts) + ']'
+
+
+def install_update_rollback() -> None:
+    """Make a refused ``params.update()`` leave every ``pbrt_*`` texture of the update as it
+    was. Mitsuba's ``SceneParameters.update`` writes the values first and then tells the changed
+    objects in turn, children before parents, and stops at the first error: a texture of ours
+    told before the refusal had accepted its new values, and one never told kept whatever was
+    written (a bad ``data`` shape in another texture ended the next render inside Dr.Jit, a NaN
+    in a parent ``pbrt_mix``'s amount stayed; found by a review). The wrapper (installed once,
+    by :func:`~mitsuba_pbrt_tex.registry.register`; it calls Mitsuba's own ``update`` and acts
+    only when that raises) puts back, in each of our textures the update marked, the values it
+    had accepted before the update, and rebuilds what those told already had rebuilt, then
+    re-raises. Mitsuba's own objects are as Mitsuba leaves them (the marks stay, so the next
+    ``update()`` tells them again)."""
+    cls = mi.SceneParameters
+    if getattr(cls.update, '_pbrt_rollback', False):
+        return
+    original = cls.update
+
+    def update(self, values=None):
+        before = {id(node): getattr(node, '_accepted', None) for node in self.hierarchy
+                  if is_pbrt_texture(node)}
+        try:
+            return original(self, values)
+        except Exception:
+            for (_, node), keys in self.nodes_to_update.items():
+                accepted = before.get(id(node))
+                if accepted is None:
+                    continue
+                told = node._accepted is not accepted
+                node._restore(accepted)
+                if told:
+                    node.on_parameters_changed(list(keys))
+                    node._accepted = accepted
+            raise
+
+    update.__doc__ = original.__doc__
+    update._pbrt_rollback = True
+    cls.update = update
 
 
 class _Collect:

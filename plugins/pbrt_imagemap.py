@@ -356,10 +356,13 @@ class Plugin(PbrtTexture):
             return pixel.context(si)
         return TextureEvalContext.from_si(si)
 
-    def _value(self, si, active):
+    def _value(self, si, active, around_sample: bool = False):
         pixels = pixel.published_pixels() if self.filter_name == 'box' else None
         pyr, tables = self._state()
-        if self.silhouette_filter is not None and in_silhouette_paths():
+        if around_sample:
+            v = self.filter(pyr, self.mapping.map(TextureEvalContext.from_si(si)), active,
+                            tables) * self.scale
+        elif self.silhouette_filter is not None and in_silhouette_paths():
             # the extra paths through a pixel that crosses a silhouette estimate its coverage:
             # EWA over the footprint the box would average (the same for all of a pixel's)
             v = self.silhouette_filter(pyr, self.mapping.map(pixel.context(si)), active) \
@@ -402,15 +405,24 @@ class Plugin(PbrtTexture):
         the hit has differentials their gradient is pbrt-v4's ``BumpMap`` difference of the
         filtered value over half the footprint (:meth:`PbrtTexture.eval_1_grad`, as for the
         procedural textures and as pbrt renders bump maps of them); without differentials both
-        are the bilinear lookup of level 0, whose exact gradient (``bitmap``'s) they keep."""
+        are the bilinear lookup of level 0, whose exact gradient (``bitmap``'s) they keep. The
+        difference is of sample-centred lookups also where ``box`` filters the pixel's
+        footprint (camera hits of ``pbrt_path`` ``footprint="pixel"``): the hit moved by half
+        a footprint is no longer the camera's, so a pixel average there would have been
+        differenced against a sample-centred value (found by a review)."""
         active = mi.Bool(active)
         if self.filter_name not in ('ewa', 'box'):
             return self._exact_gradient(si, active)
         ctx = TextureEvalContext.from_si(si)
         footprint = (ctx.dudx != 0) | (ctx.dudy != 0) | (ctx.dvdx != 0) | (ctx.dvdy != 0)
         exact = self._exact_gradient(si, active & ~footprint)
-        difference = PbrtTexture.eval_1_grad(self, si, active & footprint)
+        difference = self.bump_difference(si, active & footprint, self._eval_1_around_sample)
         return dr.select(footprint, difference, exact)
+
+    def _eval_1_around_sample(self, si, active):
+        """``eval_1`` of the lookup around the sample (never the pixel's footprint)."""
+        v = self._value(si, active, around_sample=True)
+        return mi.luminance(v) if self.channels == 3 else v
 
     def _exact_gradient(self, si, active):
         tc = self.mapping.map(self.context(si))

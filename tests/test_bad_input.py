@@ -956,3 +956,48 @@ def test_parallel_load_of_large_ewa_textures_completes(tmp_path):
     r = subprocess.run([sys.executable, '-c', PARALLEL_CHILD, *paths], capture_output=True,
                        text=True, timeout=300)
     assert 'LOADED 6' in r.stdout, r.stderr[-2000:]
+
+
+def test_a_refused_update_leaves_every_texture_of_the_update_as_it_was(rng):
+    """Mitsuba's params.update() tells the changed objects one by one, children first, and
+    stops at the first error: another texture of ours in the same update was never told (its
+    bad data shape ended the next render inside Dr.Jit; a NaN amount of a parent pbrt_mix
+    stayed), or had already accepted its new value (found by a review). Every pbrt_* texture
+    the update marked is put back as it was before the update."""
+    def image(shape=(8, 8, 3)):
+        return mi.TensorXf(rng.random(shape).astype(np.float32))
+
+    scene = mi.load_dict({
+        'type': 'scene', 'integrator': {'type': 'pbrt_path', 'footprint': 'pixel'},
+        'sensor': {'type': 'perspective', 'fov': 40,
+                   'to_world': mi.ScalarTransform4f().look_at([0, -2, 1.5], [0, 0, 0],
+                                                              [0, 0, 1]),
+                   'film': {'type': 'hdrfilm', 'width': 12, 'height': 8,
+                            'rfilter': {'type': 'box'}}},
+        'floor': {'type': 'rectangle', 'bsdf': {'type': 'diffuse', 'reflectance': {
+            'type': 'pbrt_imagemap', 'filter': 'box', 'data': image()}}},
+        'lamp': {'type': 'rectangle', 'to_world': mi.ScalarTransform4f().translate([0, 0, 2]),
+                 'emitter': {'type': 'area', 'radiance': {
+                     'type': 'pbrt_imagemap', 'filter': 'box', 'data': image()}}},
+        'ball': {'type': 'sphere', 'radius': 0.3, 'bsdf': {'type': 'diffuse', 'reflectance': {
+            'type': 'pbrt_mix', 'amount': 0.25, 'tex2': 0.7,
+            'tex1': {'type': 'pbrt_imagemap', 'data': image()}}}}})
+    before = mi.render(scene, spp=2, seed=1).numpy()
+    p = mi.traverse(scene)
+    floor, lamp = 'floor.bsdf.reflectance.', 'lamp.emitter.radiance.'
+    mix = 'ball.bsdf.reflectance.'
+    cases = [{floor + 'data': image((4, 4, 2)), lamp + 'data': image((4, 4, 2))},
+             {floor + 'data': image((4, 4, 2)), lamp + 'scale': mi.Float(float('nan'))},
+             {lamp + 'data': image((4, 4, 2)), floor + 'scale': mi.Float(float('nan'))},
+             # a child refuses: the parent's NaN amount is never checked
+             {mix + 'tex1.data': image((4, 4, 2)), mix + 'amount.value': mi.Float(float('nan'))},
+             # the parent refuses after a child accepted a valid scale: that is put back too
+             {mix + 'tex1.scale': mi.Float(0.5), mix + 'amount.value': mi.Float(float('nan'))}]
+    for values in cases:
+        with pytest.raises(Exception, match='pbrt_(imagemap|mix): parameter'):
+            p.update(values)
+        assert p[floor + 'data'].shape == p[lamp + 'data'].shape == (8, 8, 3), values
+        for key in (floor + 'scale', lamp + 'scale', mix + 'tex1.scale'):
+            assert A(p[key])[0] == 1.0, (values, key)
+        assert A(p[mix + 'amount.value'])[0] == 0.25, values
+        np.testing.assert_array_equal(mi.render(scene, spp=2, seed=1).numpy(), before)

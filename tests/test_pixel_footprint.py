@@ -741,3 +741,37 @@ def test_texel_gradients_through_pixel_strips(forward, rng):
     fp = pixel.pixel_footprint(scene.sensors()[0], si)
     assert (A(fp.ok) & (np.abs(A(fp.h)) > pixel.STRIP_PERSPECTIVE)).sum() >= 5
     tg.check_gradient(scene, 'plane.bsdf.reflectance.data', rng, forward=forward)
+
+
+@pytest.mark.parametrize('rfilter', ['box', 'gaussian'])
+def test_bump_map_of_a_box_texture_under_pixel_footprints(rfilter):
+    """A bump map of a ``box`` texture under ``footprint="pixel"``: its gradient is pbrt's
+    difference of sample-centred lookups, as under ``footprint="sample"`` — at camera hits the
+    difference took the pixel's average at the hit and a sample-centred value at the hit moved
+    by half a footprint (no longer a camera hit), an error as large as the bump's whole effect
+    (found by a review). Reference: the same render with ``trilinear`` (exact gradient), whose
+    bump shading a smooth height field shares to within the noise; the bug put the box render
+    |box - trilinear| ≈ |trilinear - no bump|, here it must stay below a quarter of that."""
+    n = 64
+    y, x = np.mgrid[0:n, 0:n] / n
+    height = (0.5 + 0.5 * np.sin(2 * np.pi * 3 * x) * np.cos(2 * np.pi * 2 * y)).astype(
+        np.float32)
+
+    def render(filt, bump=True):
+        tex = {'type': 'pbrt_imagemap', 'data': mi.TensorXf(height[..., None]), 'filter': filt}
+        bsdf = {'type': 'bumpmap', 'arbitrary': tex, 'scale': 0.3,
+                'bsdf': {'type': 'diffuse'}} if bump else {'type': 'diffuse'}
+        scene = mi.load_dict({
+            'type': 'scene', 'integrator': {'type': 'pbrt_path', 'footprint': 'pixel'},
+            'sensor': {'type': 'perspective', 'fov': 40, 'to_world': mi.ScalarTransform4f()
+                       .look_at([0, -2.5, 2.5], [0, 0, 0], [0, 0, 1]),
+                       'film': {'type': 'hdrfilm', 'width': 32, 'height': 32,
+                                'rfilter': {'type': rfilter}}},
+            'obj': {'type': 'rectangle', 'bsdf': bsdf},
+            'sun': {'type': 'directional', 'direction': [0.3, 0.2, -1], 'irradiance': 2.0}})
+        return np.array(mi.render(scene, spp=16, seed=1))
+
+    tri = render('trilinear')
+    effect = np.abs(tri - render('trilinear', bump=False)).mean()
+    assert effect > 0.02
+    assert np.abs(render('box') - tri).mean() < 0.25 * effect
