@@ -5,8 +5,9 @@ Each configuration runs in a fresh Python process (peak RSS is per process): it 
 records its resident memory, loads one RGB float32 OpenEXR image as a texture, evaluates a batch
 of lookups, and reports
 
-* *peak* — the process's maximum resident set size minus the resident memory before the load,
-  i.e. everything the load, the pyramid build and the lookups needed at their worst moment;
+* *peak* — the process's maximum resident set size (``VmHWM``: its own, whatever process
+  started it) minus the resident memory before the load, i.e. everything the load, the pyramid
+  build and the lookups needed at their worst moment;
 * *held* — resident memory after the lookups (Python objects collected) minus the same
   baseline: what the process keeps, Dr.Jit's allocation cache included;
 * *kept* — the same after flushing that cache: what the texture itself holds (*held − kept*
@@ -37,6 +38,15 @@ def rss():
     with open('/proc/self/statm') as f:
         return int(f.read().split()[1]) * os.sysconf('SC_PAGE_SIZE')
 
+def peak_rss():
+    # this process's own high-water mark: getrusage's ru_maxrss also holds the parent's peak
+    # where Python started this process by vfork (Linux keeps the pre-exec image's maximum)
+    with open('/proc/self/status') as f:
+        for line in f:
+            if line.startswith('VmHWM:'):
+                return int(line.split()[1]) * 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
 kind, path, reloads = sys.argv[1], sys.argv[2], int(sys.argv[3])
 mi.set_variant('llvm_ad_rgb'); mpt.register()
 si = dr.zeros(mi.SurfaceInteraction3f, 4096)
@@ -66,7 +76,7 @@ else:
     tex = mi.load_dict(d)
     dr.eval(tex.eval(si))
     dr.sync_thread()
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
+    peak = peak_rss() - base
     gc.collect()
     held = rss() - base
     dr.flush_malloc_cache()
