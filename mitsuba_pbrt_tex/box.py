@@ -44,7 +44,8 @@ makes the rows run along the footprint's longer extent, so that fewer rows need 
   on values in [0, 1]). Those roundings grow with the walk: its partial weights have both signs
   and cancel, so long walks on the coarse levels of elongated images return a constant up to
   ~2e-4 of its value off (footprints to 10³ image widths, any orientation: 1.8e-5 on a 33×5
-  image, 0.5–1.8e-4 on 3×1000, 2×700, 700×1, 3×257 and 8×2048 ones, 3e-6 on square ones).
+  image, 0.5–1.8e-4 on 3×1000, 2×700, 700×1, 3×257 and 8×2048 ones, up to 8e-6 on square
+  ones).
 * Every iteration adds ``weights · texels`` for the texels it reads and carries no texel value:
   both loops are differentiable by Dr.Jit's sum-style reverse mode and by its forward mode
   (gradients reach the pyramid buffer exactly; the weights are geometry, not differentiated).
@@ -86,9 +87,11 @@ from .wrap import COORD_LIMIT, PERIODIC, first_period, wrap_1d
 
 #: The level's short side (area / longest side) is at most this many texels. A footprint wider
 #: than this is walked on a coarser level, in about half the walk's and chords' iterations per
-#: level, and loses the detail of the levels it skips (README, *Speed against error*: what 6
-#: costs and saves next to a far edge).
-MAX_BANDS = 6
+#: level, and loses the detail of the levels it skips: a coarser level's reconstruction blurs
+#: the footprint's outline by about its texel, an error of about (that texel / the short side)
+#: of the contrast there — 16 keeps pixel averages of minified images with sharp detail at the
+#: reference's noise where 6 left them at up to 19× it (README, *Speed against error*).
+MAX_BANDS = 16
 #: The level's Manhattan perimeter 2·(|e0x| + |e0y| + |e1x| + |e1y|) is at most this many texels:
 #: the walk's iterations, and a SIMD packet runs as long as its longest lane (README, *Speed
 #: against error*: what 128 instead of 256 saves and costs next to a far edge).

@@ -161,6 +161,12 @@ def cases(mitsuba_data=None, work_dir='bench-out') -> list[Case]:
                     'plane to the horizon, zone-plate image (100×100 tiles)',
                     {'texture': 'tex/image_bitmap.xml', 'image': '../textures/zoneplate.png',
                      'tiles': '100', 'integrator': 'path'}, b + o, flat, far_edge=True))
+    b, o = _image_methods('../textures/grid.png', '20', pixel=True)
+    out.append(Case('oblique-grid', 'oblique.xml',
+                    'plane at a moderate angle to its far edge, grid image minified (20×20 tiles: '
+                    'pixel footprints about 10-60 texels long)',
+                    {'texture': 'tex/image_bitmap.xml', 'image': '../textures/grid.png',
+                     'tiles': '20', 'integrator': 'path'}, b + o, flat, far_edge=True))
     mapping_ours = [Method(f'pbrt_imagemap {f}', {'filter': f.split()[0], **extra}, True, grp)
                     for f, extra, grp in (('bilinear', {}, ''),
                                           ('trilinear v3', {'trilinearwidth': 'v3'}, 'trilinear-width'),
