@@ -177,8 +177,11 @@ def may_wait_for_kernels() -> bool:
     texture's build run inside this one's then met it in a kernel (``jitc_assemble(): variable
     … (scope 2) depends on … (scope 68)``: 6 of 20 parallel loads of 20 textures of 2048², 0 of
     45 since; found in a user trial). Builds on those threads keep their temporaries in Dr.Jit's
-    allocation cache until something reuses them."""
-    return threading.current_thread() is threading.main_thread()
+    allocation cache until something reuses them. Nor while ``dr.freeze`` records (a
+    ``params.update()`` inside a frozen function): flushing the cache is refused there, which
+    ended the recording of any update of a pyramid of 16 MiB or more (found by a review)."""
+    return (threading.current_thread() is threading.main_thread()
+            and not dr.flag(dr.JitFlag.FreezingScope))
 
 
 def sanitized(x):

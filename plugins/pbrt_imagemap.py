@@ -527,9 +527,12 @@ class Plugin(PbrtTexture):
     def on_parameters_changed(self, keys):
         if (not keys or 'to_uv' in keys) and self._to_uv is not None:
             self._set_to_uv(self._to_uv)
-        if self.invert and (not keys or 'scale' in keys):
+        if self.invert and (not keys or 'scale' in keys) and \
+                not dr.flag(dr.JitFlag.FreezingScope):
             # only invert makes the sampling density depend on the scale (read now, outside
-            # any kernel being traced)
+            # any kernel being traced; not while dr.freeze records, which cannot read values
+            # back: an emitter's density then keeps the scale read last — its pdf is still the
+            # density it samples, only less well matched)
             self._scale_value = float(dr.detach(self.scale)[0])
         if not keys or {'data', 'scale', 'to_uv'} & set(keys):
             self._sampler = None            # rebuilt when an emitter next asks
@@ -562,9 +565,10 @@ class Plugin(PbrtTexture):
         Texels that are all integers in [0, 255] with some above 1 are what such a write
         leaves; linear radiance can be like that too, so this warns rather than refuses. Skipped
         for tensors with gradients (an optimiser's step), where reading them back would cost a
-        synchronisation per step (and could not be recorded by ``dr.freeze``).
+        synchronisation per step, and while ``dr.freeze`` records, which cannot read them back
+        (a frozen step that wrote texels failed to record; found by a review).
         """
-        if dr.grad_enabled(self.data):
+        if dr.grad_enabled(self.data) or dr.flag(dr.JitFlag.FreezingScope):
             return
         v = self.data.array                 # reductions on the device: no copy to the host
         finite = dr.isfinite(v)

@@ -298,3 +298,40 @@ def test_whole_step_frozen_with_parameter_updates_inside(texture, key):
                 for i in range(4)]
 
     np.testing.assert_allclose(run(True), run(False), rtol=1e-5)
+
+
+@pytest.mark.parametrize('case', ['large data', 'inverted scale'])
+def test_params_updates_of_an_image_inside_a_frozen_function(case):
+    """params.update() of a pbrt_imagemap inside dr.freeze (found by a review): the data of a
+    texture whose pyramid is 16 MiB or more (its build gave its temporaries back by flushing
+    Dr.Jit's allocation cache, which a recording refuses), and the scale of an inverted one
+    (read back for its emitter density, which a recording cannot do; the density keeps the
+    scale read last). Both failed to record; their mean() equals the unfrozen steps' (float32
+    rounding of the replayed kernels: rtol 1e-5)."""
+    rng = np.random.default_rng(4)
+    shape = (1025, 1024, 3) if case == 'large data' else (16, 16, 3)
+    img = rng.random(shape).astype(np.float32)
+    base = mi.TensorXf(img)
+
+    def run(frozen):
+        tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'filter': 'box',
+                            'invert': case == 'inverted scale'})
+        params = mi.traverse(tex)
+
+        def step(tex, params, k):
+            if case == 'large data':
+                params['data'] = base * k
+            else:
+                params['scale'] = k
+            params.update()
+            return tex.mean()
+
+        fn = dr.freeze(step) if frozen else step
+        out = []
+        for k in (1.0, 0.5, 0.3, 2.0):
+            x = mi.Float(k)
+            dr.make_opaque(x)
+            out.append(float(np.array(fn(tex, params, x)).ravel()[0]))
+        return out
+
+    np.testing.assert_allclose(run(True), run(False), rtol=1e-5)
