@@ -318,7 +318,7 @@ def test_params_updates_of_an_image_inside_a_frozen_function(case):
                             'invert': case == 'inverted scale'})
         params = mi.traverse(tex)
 
-        def step(tex, params, k):
+        def step(tex, params, base, k):             # (a frozen function's inputs: arguments)
             if case == 'large data':
                 params['data'] = base * k
             else:
@@ -331,7 +331,7 @@ def test_params_updates_of_an_image_inside_a_frozen_function(case):
         for k in (1.0, 0.5, 0.3, 2.0):
             x = mi.Float(k)
             dr.make_opaque(x)
-            out.append(float(np.array(fn(tex, params, x)).ravel()[0]))
+            out.append(float(np.array(fn(tex, params, base, x)).ravel()[0]))
         return out
 
     np.testing.assert_allclose(run(True), run(False), rtol=1e-5)
