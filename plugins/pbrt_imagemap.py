@@ -60,9 +60,10 @@ at most :data:`~mitsuba_pbrt_tex.box.MAX_PERIMETER` (see :mod:`mitsuba_pbrt_tex.
 table beside the pyramid (the "tables" are AD aliases of its buffer). ``eval_1_grad``: see
 *Gradients* below. ``box`` opts in to ``pbrt_path``'s ``footprint="pixel"``: camera hits then filter
 their pixel's footprint (every sample of a pixel sees its average; right for albedo and
-emission, not for roughness or bump maps, whose shading is not linear in the texture — use
-another filter there). With a Gaussian film filter they filter the film filter's own kernel
-around the pixel centre instead (:mod:`mitsuba_pbrt_tex.gauss`).
+emission, not for roughness, whose shading is not linear in the texture — use another filter
+there; a bump map's gradient is taken from sample-centred lookups, see *Gradients*). With a
+Gaussian film filter they filter the film filter's own kernel around the pixel centre instead
+(:mod:`mitsuba_pbrt_tex.gauss`).
 
 Lookup order (``sortlookups``): an EWA lookup reads ~40 cache lines, so a batch of lookups at
 random places of a large texture waits on memory. Where the batch exists as evaluated arrays — a

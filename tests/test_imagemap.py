@@ -837,6 +837,22 @@ def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitma
     assert '3 texel value(s) beyond ±1e38 clamped' in log
 
 
+@pytest.mark.parametrize('shape, invert', [((1100, 1000, 3), False), ((1100, 1000, 3), True),
+                                           ((1500, 1000, 1), False)])
+def test_mean_of_images_larger_than_a_reduction_chunk(shape, invert, rng):
+    """mean() of images over 2^20 texels, which construction reduces a chunk at a time (so that
+    the reduction holds no copy of the image): every chunk counts. Against numpy's float64 mean
+    of the luminance (or channel) of the texels, inverted as lookups invert (max(0, 1 - v)).
+    float32 sums of ~10^6 values per chunk: rtol 1e-5."""
+    img = rng.random(shape).astype(np.float32)
+    tex = mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(img), 'invert': invert})
+    v = img.astype(np.float64)
+    if invert:
+        v = np.maximum(0, 1 - v)
+    want = (v @ [0.212671, 0.715160, 0.072169]).mean() if shape[2] == 3 else v.mean()
+    np.testing.assert_allclose(A(tex.mean())[0], want, rtol=1e-5)
+
+
 # ------------------------------------------------------------------------------------ eval_1_grad
 @pytest.mark.parametrize('filt,convention', [('trilinear', 'v3'), ('trilinear', 'v4'),
                                              ('bilinear', 'v3')])
