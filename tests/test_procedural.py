@@ -441,12 +441,37 @@ def test_checkerboard_area_is_the_exact_parallelogram_average(rng):
     tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', 'tex1': 0.0, 'tex2': 1.0})
     got = A(tex.eval_1(make_si(c, d0, d1)))
     want = numpy_reference(checker_area_references, c, d0, d1)
-    # footprints wider than the package's row limit fall back to the box closed form
+    # footprints wider than the package's row limit: its Fourier series (the test below)
     from mitsuba_pbrt_tex.checker import AREA_MAX_ROWS
     rows = np.minimum(np.abs(d0[:, 0]) + np.abs(d1[:, 0]), np.abs(d0[:, 1]) + np.abs(d1[:, 1]))
     exact = rows <= AREA_MAX_ROWS * 0.999
     assert exact.sum() > 250
     np.testing.assert_allclose(got[exact], want[exact], atol=2e-4)
+    np.testing.assert_allclose(got[~exact], want[~exact], atol=2e-2)
+
+
+def test_checkerboard_area_beyond_the_walks_rows(rng):
+    """Footprints crossing more than 16 cell rows get the checkerboard's Fourier series
+    averaged over the parallelogram (odd harmonics up to 7), against polygon clipping. Thin ones
+    along a diagonal of the cells, where cells of one colour line up and the average can be
+    anywhere in [0, 1], got pbrt-v3's box form, 1/2, before (a user trial: 0.5 for 0.895); also
+    along the (1, 3) and (3, 1) directions, and at random ones. Widths 0.05–3 cells across,
+    lengths 25–200 cells. Tolerance 0.02 (the series' tail for thin footprints along a
+    diagonal, ≤ (4/π²)·Σ_{m ≥ 9} 1/m² ≈ 0.017 in the weight; measured ≤ 5e-4 at 0.3 cell)."""
+    n = 120
+    dirs = np.concatenate([np.tile([[1, 1], [1, -1], [1, 3], [3, 1]], (20, 1)),
+                           rng.normal(size=(40, 2))]).astype(np.float64)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    length = rng.uniform(25, 200, n)
+    width = np.exp(rng.uniform(math.log(0.05), math.log(3), n))
+    c = f32(rng.uniform(-50, 50, (n, 2)))
+    d0 = f32(dirs * length[:, None])
+    d1 = f32(np.stack([-dirs[:, 1], dirs[:, 0]], 1) * width[:, None])
+    tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', 'tex1': 0.0, 'tex2': 1.0})
+    got = A(tex.eval_1(make_si(c, d0, d1)))
+    want = numpy_reference(checker_area_references, c, d0, d1)
+    assert np.abs(np.asarray(want)[:80] - 0.5).max() > 0.3       # far from the box form's 1/2
+    np.testing.assert_allclose(got, want, atol=2e-2)
 
 
 def test_checkerboard_area_on_lattice_aligned_footprints():
@@ -531,9 +556,9 @@ def test_checkerboard_area_inside_a_cell_is_the_cells_value(rng):
 
 
 def test_checkerboard_area_fallbacks():
-    """Zero footprints are point samples; degenerate (zero-area) and very wide footprints use
-    the box closed form (values by hand: a 1-cell-wide segment along s centred on a cell edge
-    averages to 1/2; a 40×40-cell square to 1/2)."""
+    """Zero footprints are point samples; degenerate (zero-area) footprints use the box closed
+    form, very wide ones the Fourier series (values by hand: a 1-cell-wide segment along s
+    centred on a cell edge averages to 1/2; a 40×40-cell square to 1/2)."""
     tex = mi.load_dict({'type': 'pbrt_checkerboard', 'aamode': 'area', 'tex1': 0.0, 'tex2': 1.0})
     uv = np.array([[0.5, 0.5], [1.5, 0.5], [1.0, 0.5], [3.3, 7.1]])
     d0 = np.array([[0, 0], [0, 0], [1.0, 0], [40, 0]])
