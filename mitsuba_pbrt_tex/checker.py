@@ -267,11 +267,11 @@ def area_mean(st, d0, d1):
     total, = walk(p.outline(), ok, _piece_integral, (mi.Float(0),), knots=False, flush=False,
                   label='pbrt_checkerboard (area)')
     mean = dr.clip(sign * total / dr.select(ok, area, 1), -1, 1)
-    # wider than the walk's rows (not degenerate): the Fourier series (pbrt-v3's box form,
-    # used before, is 0 there whatever the direction — far off for thin footprints along a
-    # diagonal of the cells, where cells of one colour line up: 0 for 0.79, a user trial)
+    # wider than the walk's rows (not degenerate): the Fourier series, relative to the lattice
+    # point as the walk (pbrt-v3's box form, used before, is 0 there whatever the direction —
+    # far off for thin footprints along a diagonal of the cells, where cells of one colour line
+    # up: 0 for -0.79, a user trial)
     wide = ~ok & ~inside & (rows > AREA_MAX_ROWS) & (area > 0) & dr.isfinite(area)
-    q = Parallelogram(p.c + lattice, p.e0, p.e1)
-    needed = wide & (fourier_bound(q.e0, q.e1) >= FOURIER_NEGLIGIBLE)
-    mean = dr.select(wide, fourier_mean(q.c, q.e0, q.e1, needed), mean)
+    needed = wide & (fourier_bound(p.e0, p.e1) >= FOURIER_NEGLIGIBLE)
+    mean = dr.select(wide, sign * fourier_mean(p.c, p.e0, p.e1, needed), mean)
     return dr.select(inside, cell, mean), ok | inside | wide
