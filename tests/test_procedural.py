@@ -456,8 +456,10 @@ def test_checkerboard_area_beyond_the_walks_rows(rng):
     along a diagonal of the cells, where cells of one colour line up and the average can be
     anywhere in [0, 1], got pbrt-v3's box form, 1/2, before (a user trial: 0.5 for 0.895); also
     along the (1, 3) and (3, 1) directions, and at random ones. Widths 0.05–3 cells across,
-    lengths 25–200 cells. Tolerance 0.02 (the series' tail for thin footprints along a
-    diagonal, ≤ (4/π²)·Σ_{m ≥ 9} 1/m² ≈ 0.017 in the weight; measured ≤ 5e-4 at 0.3 cell)."""
+    lengths 25–200 cells, and very long ones (10⁸–10³⁰ cells: float32's sin fails there; a
+    diagonal strip through (0.3, 0.7) averages 0.4 at any length). Tolerance 0.02 (the series'
+    tail for thin footprints along a diagonal, ≤ (4/π²)·Σ_{m ≥ 9} 1/m² ≈ 0.025 in the weight
+    for lines; measured ≤ 0.011 from 0.05 cell wide, ≤ 5e-4 at 0.3)."""
     n = 120
     dirs = np.concatenate([np.tile([[1, 1], [1, -1], [1, 3], [3, 1]], (20, 1)),
                            rng.normal(size=(40, 2))]).astype(np.float64)
@@ -472,6 +474,11 @@ def test_checkerboard_area_beyond_the_walks_rows(rng):
     want = numpy_reference(checker_area_references, c, d0, d1)
     assert np.abs(np.asarray(want)[:80] - 0.5).max() > 0.3       # far from the box form's 1/2
     np.testing.assert_allclose(got, want, atol=2e-2)
+    length = np.array([1e8, 1e10, 1e20, 1e30])
+    d0 = f32(np.stack([length, length], 1) / math.sqrt(2))
+    d1 = f32(np.tile([[-0.3 / math.sqrt(2), 0.3 / math.sqrt(2)]], (4, 1)))
+    far = A(tex.eval_1(make_si(np.tile([[0.3, 0.7]], (4, 1)), d0, d1)))
+    np.testing.assert_allclose(far, 0.4, atol=2e-2)                # (tex2 = 1: its weight)
 
 
 def test_checkerboard_area_on_lattice_aligned_footprints():
