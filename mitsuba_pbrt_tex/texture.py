@@ -318,15 +318,19 @@ class PbrtTexture:
                         check_value_update(self.NAME, f'{name}.{key}', inner[key],
                                            check_width=False)
 
+    def _traversed(self) -> dict:
+        """What :meth:`traverse` puts, by name (the objects themselves)."""
+        own = _Collect()
+        self.traverse(own)
+        return own.values
+
     def _settable_values(self) -> dict:
         """What ``params.update()`` can write in place: this texture's traversed values and
         the parameters of its nested constants (a Mitsuba ``srgb``, ``uniform``), as ``{(name,
         key): copy}`` (``key`` None for the texture's own) — copies that refer to the same
         variables (no memory of their own), which :meth:`_restore` writes back."""
-        own = _Collect()
-        self.traverse(own)
         out = {}
-        for name, value in own.values.items():
+        for name, value in self._traversed().items():
             if name in self._nested:
                 if not value.is_spatially_varying():
                     inner = mi.traverse(value)
@@ -338,14 +342,13 @@ class PbrtTexture:
 
     def _restore(self, accepted: dict) -> None:
         """Write the values of :meth:`_settable_values` back where they came from."""
-        own = _Collect()
-        self.traverse(own)
+        own = self._traversed()
         nested = {}
         for (name, key), value in accepted.items():
             if key is None:
-                mi.set_property(own.values[name], value)
+                mi.set_property(own[name], value)
             else:
-                inner = nested.setdefault(name, mi.traverse(own.values[name]))
+                inner = nested.setdefault(name, mi.traverse(own[name]))
                 inner[key] = value
         for inner in nested.values():
             inner.update()

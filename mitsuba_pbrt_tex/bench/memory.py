@@ -58,9 +58,10 @@ dr.eval(si)
 # a first load compiles this size's kernels (their sizes are literals): LLVM's memory while it
 # compiles is not the texture's (a first run at 512² made bilinear's peak 9.4× the image, 4.1×
 # once compiled); then the high-water mark is reset (Linux: clear_refs 5)
-warm = mi.load_dict({'type': 'bitmap', 'filename': path} if kind == 'bitmap' else
-                    {'type': 'pbrt_imagemap', 'filename': path,
-                     'filter': 'ewa' if kind == 'reload' else kind})
+spec = ({'type': 'bitmap', 'filename': path} if kind == 'bitmap' else
+        {'type': 'pbrt_imagemap', 'filename': path,
+         'filter': 'ewa' if kind == 'reload' else kind})
+warm = mi.load_dict(spec)
 dr.eval(warm.eval(si))
 dr.sync_thread()
 del warm
@@ -76,7 +77,7 @@ if kind == 'reload':
     from mitsuba_pbrt_tex.image import image_cache
     after = []
     for i in range(reloads):
-        tex = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter': 'ewa'})
+        tex = mi.load_dict(spec)
         dr.eval(tex.eval(si))
         dr.sync_thread()
         del tex
@@ -86,9 +87,7 @@ if kind == 'reload':
         os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
     out = dict(after=after, entries=len(image_cache))
 else:
-    d = {'type': 'bitmap', 'filename': path} if kind == 'bitmap' else \
-        {'type': 'pbrt_imagemap', 'filename': path, 'filter': kind}
-    tex = mi.load_dict(d)
+    tex = mi.load_dict(spec)
     dr.eval(tex.eval(si))
     dr.sync_thread()
     peak = peak_rss() - base
