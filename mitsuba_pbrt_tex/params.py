@@ -109,22 +109,24 @@ class Params:
             raise self.error(key, f'expected a float, got {_a_type(self.props, key)} '
                                   f'({self.props[key]!r})')
         value = float(self.props[key])
-        self._check_range(key, value, lo, hi, lo_open)
+        self.check_range(key, value, lo=lo, hi=hi, lo_open=lo_open)
         return value
 
     def int(self, name: str, default: int, *, lo: int | None = None,
-            hi: int | None = None) -> int:
+            hi: int | None = None, strict: bool = False) -> int:
+        """An integer; a float with an integer value too (3.0), unless ``strict`` (for what
+        Mitsuba's C++ base classes read themselves: a float there is their type error)."""
         key = self._pick(name, None)
         if key is None:
             return int(default)
-        if self._kind(key) == 'Float' and float(self.props[key]).is_integer():
+        if not strict and self._kind(key) == 'Float' and float(self.props[key]).is_integer():
             value = int(self.props[key])
         elif self._kind(key) != 'Integer':
             raise self.error(key, f'expected an integer, got {_a_type(self.props, key)} '
                                   f'({self.props[key]!r})')
         else:
             value = int(self.props[key])
-        self._check_range(key, value, lo, hi, False)
+        self.check_range(key, value, lo=lo, hi=hi)
         return value
 
     def bool(self, name: str, default: bool, *, alias: str | None = None) -> bool:
@@ -167,12 +169,17 @@ class Params:
             raise self.error(key, f'unknown value "{value}"; accepted values: {", ".join(choices)}')
         return value
 
-    def _check_range(self, key, value, lo, hi, lo_open) -> None:
+    def check_range(self, key: str, value, *, lo=None, hi=None, lo_open: bool = False) -> None:
+        """``value`` (of parameter ``key``) within ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``);
+        a float also finite and within float32's range. An open bound holds for the value as a
+        float32 variant stores it: 1e-50 is not > 0 there."""
         if isinstance(value, float):
             self._check_finite(key, value)
-        if lo is not None and (value < lo or (lo_open and value == lo)):
+        stored = float(np.float32(value)) if isinstance(value, float) else value
+        if lo is not None and (value < lo or (lo_open and stored <= lo)):
             bound = f'> {lo}' if lo_open else f'>= {lo}'
-            raise self.error(key, f'must be {bound}, got {value}')
+            rounded = f' ({stored:g} in float32)' if stored != value else ''
+            raise self.error(key, f'must be {bound}, got {value}{rounded}')
         if hi is not None and value > hi:
             raise self.error(key, f'must be <= {hi}, got {value}')
 

@@ -15,6 +15,8 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 | spp_scale | string or float | pbrt | footprint scale: `pbrt` = max(1/8, 1/√spp) (pbrt-v4), `none` = one pixel, or a positive number | no |
 | footprint | string | sample | camera hits' texture footprint: `sample` (around each sample, as pbrt) or `pixel` (the pixel's own footprint, for textures that opt in; needs a `perspective` sensor and a `box` or `gaussian` film filter) | no |
 | silhouette_spp | integer | 0 | `footprint="pixel"` (0 to 65536): this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels), in scenes with a texture that filters the film's kernel (`pbrt_imagemap` `box`); primal renders only; no effect where pixel footprints do not apply | no |
+| samples_per_pass | integer | (none) | accepted (1 or more) as Mitsuba's `path` accepts it, so that its scenes load, but without effect (with a warning): a render is one pass, as `prb`'s | no |
+| timeout | float | (none) | accepted as Mitsuba's `path` accepts it, without effect (with a warning): no time limit, as `prb` | no |
 | aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (the uv partials the textures read at the first hit, scaled by `spp_scale` as they are; 0 where no texture reads them or `texture_differentials` is false; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
@@ -152,6 +154,7 @@ class Plugin:
         p.int('max_depth', 6, lo=-1, hi=MAX_DEPTH)
         p.int('rr_depth', 5, lo=1, hi=MAX_DEPTH)
         p.bool('hide_emitters', False)
+        Plugin._pass_options(p)
 
     def setup(self, props):
         variants.require_supported(self.NAME)
@@ -160,6 +163,12 @@ class Plugin:
         self.max_depth = 0xffffffff if max_depth == -1 else max_depth
         self.rr_depth = p.int('rr_depth', 5, lo=1, hi=MAX_DEPTH)
         self.hide_emitters = p.bool('hide_emitters', False)
+        given = self._pass_options(p)
+        if given:
+            verb = 'have' if len(given) > 1 else 'has'
+            mi.Log(mi.LogLevel.Warn, f'{self.NAME}: {" and ".join(given)} {verb} no effect: '
+                   f'{self.NAME} renders all samples in one pass, with no time limit (as '
+                   f'Mitsuba\'s prb does)')
         self.texture_differentials = p.bool('texture_differentials', True)
         self.spp_mode = self._spp_mode(p)
         self.footprint_mode = p.enum('footprint', 'sample', FOOTPRINTS)
@@ -178,6 +187,17 @@ class Plugin:
         self.cache = SceneCache()       # what the last scene and sensor need (scene_needs)
         self._handover = None           # sample_rays → sample(): see render_scope
 
+    @staticmethod
+    def _pass_options(p) -> list:
+        """``samples_per_pass`` and ``timeout``, which Mitsuba's ``SamplingIntegrator`` reads
+        (the ones given): accepted, so that a ``path`` scene loads with ``pbrt_path`` in its
+        place, but without effect — a render is one pass with no time limit, as Mitsuba's
+        ``prb`` renders (it ignores them silently; :meth:`setup` warns)."""
+        given = [name for name in ('samples_per_pass', 'timeout') if p.has(name)]
+        p.int('samples_per_pass', 1, lo=1, strict=True)
+        p.float('timeout', -1.0)
+        return given
+
     def _spp_mode(self, p):
         if not p.has('spp_scale'):
             return 'pbrt'
@@ -193,9 +213,10 @@ class Plugin:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (math.isfinite(value) and value > 0):
+        if not value > 0:                               # (NaN too)
             raise p.error('spp_scale', f'unknown value "{text}"; accepted values: pbrt, none, '
                                        f'or a number > 0')
+        p.check_range('spp_scale', value, lo=0.0, lo_open=True)     # as a <float> would be
         return value
 
     def aov_names(self):
@@ -312,13 +333,13 @@ class Plugin:
         return ray, weight, pos
 
     def _foreign_rays(self, need: str, where: str) -> bool:
-        """Camera rays that are not this integrator's render's (Mitsuba's ``moment``, a
-        ``sample()`` called directly) where pixel footprints cannot apply: the textures keep
+        """Camera rays that are not this integrator's render's (Mitsuba's ``aov``, ``moment``,
+        a ``sample()`` called directly) where pixel footprints cannot apply: the textures keep
         the sample's footprint, with a warning (not silently). Returns False (no pixel
         footprints)."""
         mi.Log(mi.LogLevel.Warn, f'{self.NAME}: footprint="pixel" {need}; these come from '
-               f'elsewhere (Mitsuba\'s moment integrator, or sample() called directly) {where}, '
-               f'so camera hits keep the sample\'s footprint')
+               f'elsewhere (another integrator, such as Mitsuba\'s aov or moment, or sample() '
+               f'called directly) {where}, so camera hits keep the sample\'s footprint')
         return False
 
     def pixel_sensor(self, sensor):

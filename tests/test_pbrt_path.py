@@ -377,6 +377,12 @@ def test_no_nan_on_hard_cases(case):
 def test_integrator_parameter_errors_and_variants():
     for d, words in [({'type': 'pbrt_path', 'spp_scale': 'sqrt'}, ['"spp_scale"', 'pbrt, none']),
                      ({'type': 'pbrt_path', 'spp_scale': -1.0}, ['"spp_scale"', '> 0']),
+                     # a number as a string (XML <string>, a <default>) is checked as a number:
+                     # '1e39' was accepted and became inf (every footprint then dropped to 0)
+                     ({'type': 'pbrt_path', 'spp_scale': '1e39'}, ['"spp_scale"', 'float32']),
+                     # and 1e-50 is 0 in float32 (point sampling), not > 0
+                     ({'type': 'pbrt_path', 'spp_scale': '1e-50'}, ['"spp_scale"', '> 0']),
+                     ({'type': 'pbrt_path', 'spp_scale': 1e-50}, ['"spp_scale"', '0 in float32']),
                      ({'type': 'pbrt_path', 'aovs': 'depth'}, ['"aovs"', 'duv_dx, duv_dy']),
                      # the film refused the repeated channels at render time with a raw error
                      ({'type': 'pbrt_path', 'aovs': 'duv_dx, duv_dx'},
@@ -445,6 +451,18 @@ def test_renders_as_mitsuba_prb_through_glass_with_roulette():
     for box in ('small-box', 'large-box'):
         scene[box]['bsdf'] = {'type': 'ref', 'id': 'glass'}
     _renders_as_prb(scene, {'max_depth': 8, 'rr_depth': 1})
+
+
+def test_path_pass_options_load_without_effect_and_say_so(capfd):
+    """``samples_per_pass`` and ``timeout`` (Mitsuba's ``SamplingIntegrator`` reads them: a
+    ``path`` scene may set them) load — they were refused as unknown parameters — render as
+    ``prb`` with them does (which ignores them) and warn that they have no effect; a wrong type
+    is still an error."""
+    _renders_as_prb(mi.cornell_box(), {'samples_per_pass': 4, 'timeout': 10.0})
+    out = ''.join(capfd.readouterr())
+    assert 'pbrt_path: samples_per_pass and timeout have no effect' in out
+    with pytest.raises(RuntimeError, match='"samples_per_pass": expected an integer'):
+        mi.load_dict({'type': 'pbrt_path', 'samples_per_pass': 'four'})
 
 
 def test_spp_scale_as_an_integer_is_a_number():
