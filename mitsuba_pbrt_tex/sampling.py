@@ -250,7 +250,14 @@ def uv_axes(mapping, wrap: str) -> tuple[list[_Axis] | None, str]:
 
 
 class PositionSampler:
-    """Surface-uv sampling for one texture: texture-space sampler + the uv mapping."""
+    """Surface-uv sampling for one texture: texture-space sampler + the uv mapping.
+
+    The density returned with a sample is :meth:`pdf` at the returned uv — what
+    ``pdf_position`` gives there and what the emitter's value there is divided by — not the
+    texture-space sampler's density at the point it drew: mapping that point to uv and back
+    moves it by a few ulps, and next to a texel corner of weight 0, where the density vanishes
+    quadratically, the two differed without bound (a tiled mask light: density 6e-18 returned
+    for a uv where the value is 2.6e-5, one light-traced sample weighted 4e12)."""
 
     def __init__(self, tex_sampler: TextureSpaceSampler | None, axes: list[_Axis] | None):
         self.tex = tex_sampler
@@ -270,7 +277,7 @@ class PositionSampler:
                 tiles.append(k)
             else:
                 tiles.append(mi.Float(0))
-        st, pdf = self.tex.sample(mi.Point2f(comps[0], comps[1]), active)
+        st, _ = self.tex.sample(mi.Point2f(comps[0], comps[1]), active)
         uv = [None, None]
         for r, ax in enumerate(self.axes):
             s0 = st.x if r == 0 else st.y
@@ -284,7 +291,8 @@ class PositionSampler:
             else:
                 s = s0
             uv[ax.col] = dr.clip((s - ax.b) / ax.a, 0.0, 1.0)
-        return mi.Point2f(uv[0], uv[1]), pdf
+        uv = mi.Point2f(uv[0], uv[1])
+        return uv, self.pdf(uv, active)
 
     def pdf(self, uv: mi.Point2f, active) -> mi.Float:
         inside = (uv.x >= 0) & (uv.x <= 1) & (uv.y >= 0) & (uv.y <= 1)
