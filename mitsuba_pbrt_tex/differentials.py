@@ -89,6 +89,13 @@ def with_shifting_fields(si: mi.SurfaceInteraction3f) -> mi.SurfaceInteraction3f
     return out
 
 
+def without_differentials(si: mi.SurfaceInteraction3f) -> mi.SurfaceInteraction3f:
+    """A copy of ``si`` whose uv partials are 0: the lookup without a footprint."""
+    out = mi.SurfaceInteraction3f(si)
+    out.duv_dx = out.duv_dy = dr.zeros(mi.Vector2f)
+    return out
+
+
 def _field(si, name: str, cls):
     """``si.<name>`` as ``cls``; 0 where the caller left it empty.
 

@@ -87,6 +87,15 @@ def published(scope: RenderScope | None):
     return _on_thread('scope', scope)
 
 
+@contextlib.contextmanager
+def unpublished():
+    """Within this block (on this thread) nothing is published: no render scope, no silhouette
+    paths — what a texture read without a footprint traces its lookup in (a normal map,
+    :meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.read_without_footprint`)."""
+    with _on_thread('scope', None), _on_thread('silhouette', None):
+        yield
+
+
 def current() -> RenderScope | None:
     """The published scope, or None (no ``pbrt_path`` render with pixel footprints)."""
     return getattr(_STATE, 'scope', None)

@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import raydiff
-from .texture import filters_film_kernel, uses_differentials
+from .texture import filters_film_kernel, is_pbrt_texture, uses_differentials
 
 
 @dataclass(frozen=True)
@@ -73,8 +73,14 @@ class SceneCache:
         if self._scene is not None and shapes.index != 0 and \
                 self._scene[0].index == shapes.index:
             return self._scene[2]
-        nodes = list(mi.traverse(scene).hierarchy.keys())
-        readers = [n for n in nodes if isinstance(n, mi.Texture) and uses_differentials(n)]
+        hierarchy = mi.traverse(scene).hierarchy
+        nodes = list(hierarchy.keys())
+        plain = normal_maps(hierarchy)
+        for tex in plain.values():
+            if is_pbrt_texture(tex):
+                tex.read_without_footprint()
+        readers = [n for n in nodes if isinstance(n, mi.Texture) and id(n) not in plain and
+                   uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
         needs = SceneNeeds(bool(readers), specular, reader_shapes(scene, readers),
@@ -94,6 +100,25 @@ class SceneCache:
             camera = raydiff.CameraFootprint(sensor)
         self._camera = (key, held, camera)
         return camera
+
+
+def normal_maps(hierarchy) -> dict:
+    """The textures that ``normalmap`` BSDFs read as their normal map, and those nested in them
+    (``{id: texture}``, from a traversal's ``hierarchy``: object → (parent, depth)): pbrt-v4
+    reads a normal map without a footprint, and so do our textures there
+    (:meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.read_without_footprint`). A texture object
+    that a normal map shares with another slot is read without a footprint there too."""
+    parent = {id(node): up for node, (up, _) in hierarchy.items()}
+    found = {}
+    for node in hierarchy:
+        if not isinstance(node, mi.Texture):
+            continue
+        up = parent.get(id(node))
+        while isinstance(up, mi.Texture):
+            up = parent.get(id(up))
+        if isinstance(up, mi.BSDF) and up.class_name() == 'NormalMap':
+            found[id(node)] = node
+    return found
 
 
 def reader_shapes(scene, readers):
