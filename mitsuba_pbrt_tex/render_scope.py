@@ -87,13 +87,12 @@ def published(scope: RenderScope | None):
     return _on_thread('scope', scope)
 
 
-@contextlib.contextmanager
 def unpublished():
-    """Within this block (on this thread) nothing is published: no render scope, no silhouette
-    paths — what a texture read without a footprint traces its lookup in (a normal map,
-    :meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.read_without_footprint`)."""
-    with _on_thread('scope', None), _on_thread('silhouette', None):
-        yield
+    """Within this block (on this thread) no render is published: every texture keeps the
+    sample's footprint — a texture read without one (a normal map, :meth:`~mitsuba_pbrt_tex.
+    texture.PbrtTexture.read_without_footprint`), and the textures inside one that multiplies
+    spatially varying values (:meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.multiplies_varying`)."""
+    return _on_thread('scope', None)
 
 
 def current() -> RenderScope | None:

@@ -86,6 +86,9 @@ class Plugin(PbrtTexture):
         w = self.weight(si)
         return self.blend_nested(w, si, kind, active)
 
+    def multiplies_varying(self):
+        return self.varies('tex1', 'tex2')      # (times the checks' weight)
+
     def mean(self):
         return mi.Float(0.5 * (nested_mean(self._nested['tex1']) + nested_mean(self._nested['tex2'])))
 

@@ -34,6 +34,9 @@ class Plugin(PbrtTexture):
     def is_spatially_varying(self):
         return self.nested_vary()
 
+    def multiplies_varying(self):
+        return self.varies('amount') and self.varies('tex1', 'tex2')
+
     def mean(self):
         a = nested_mean(self._nested['amount'])
         m1 = nested_mean(self._nested['tex1'])

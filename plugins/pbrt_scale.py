@@ -37,6 +37,9 @@ class Plugin(PbrtTexture):
     def is_spatially_varying(self):
         return self.nested_vary()
 
+    def multiplies_varying(self):
+        return self.varies('tex') and self.varies('scale')
+
     def mean(self):
         return finite_range(mi.Float(nested_mean(self._nested['tex'])
                                      * nested_mean(self._nested['scale'])))
