@@ -2,15 +2,26 @@
 
 Sources:
 
-* OpenEXR files through the ``OpenEXR`` package (channels ``R,G,B[,A]`` or ``Y[,A]``, other
-  channels ignored; half and float pixels become float32 exactly, also mixed in one file).
+* OpenEXR files through the ``OpenEXR`` package: channels ``R,G,B``, ``X,Y,Z`` or ``Y`` (plus
+  ``A``, which is dropped; names matched case-insensitively, as Mitsuba's reader does; other
+  channels ignored), at the top level or, where the top level has none, in the one layer that
+  has them (``diffuse.R,G,B``: Mitsuba's ``bitmap`` reads a single-layer file so; several
+  colour layers are refused, as ``bitmap`` refuses them). Half and float pixels become float32
+  exactly, also mixed in one file. ``X,Y,Z`` (what ``hdrfilm`` writes with
+  ``pixel_format="xyz"``) is converted to linear sRGB by Mitsuba's own ``Bitmap.convert``, as
+  ``bitmap`` converts it. Files that need Mitsuba's colour handling beyond that — RGB with
+  chromaticities other than Rec. 709 (ACES, or the XYZ primaries), luminance/chroma ``Y,RY,BY``
+  — are read through ``mi.Bitmap``, which converts them as ``bitmap`` does.
 * Every other format Mitsuba reads (PNG, JPEG, HDR, PFM, PPM, TGA, BMP, ...) through ``mi.Bitmap``.
+
+The reader is chosen by the file's first bytes (OpenEXR's magic number), not its extension, as
+``mi.Bitmap`` chooses: a PNG named ``.exr`` is read as the PNG it is.
 
 Channels: 1 (``Y``/``YA``) or 3 (``RGB``/``RGBA``/``XYZ``...). Alpha is dropped, as Mitsuba's
 ``bitmap`` does (a texture here is a colour or a float; use a separate texture for opacity).
 
 Encodings (pbrt-v4's ``encoding`` parameter; applied to 8- and 16-bit integer images only — float
-images are linear by definition, as in pbrt-v4):
+images are linear by definition, as in pbrt-v4 — and to ``mi.Bitmap`` objects flagged sRGB):
 
 * ``sRGB`` — the sRGB transfer curve. 8-bit texels are decoded through a 256-entry table that is
   read back from Mitsuba's own ``bitmap`` (Dr.Jit's C++ ``srgb_to_linear`` is a rational
@@ -20,6 +31,11 @@ images are linear by definition, as in pbrt-v4):
 * ``gamma G`` — ``(v / 255)^G``.
 
 Default: ``sRGB`` for 8/16-bit formats, ``linear`` for float formats (pbrt-v4 and Mitsuba agree).
+An ``mi.Bitmap`` object says itself: sRGB where its ``srgb_gamma()`` is set (integer or float
+pixels), linear where not (``mi.Bitmap`` of a uint16 or float numpy array, or after
+``set_srgb_gamma(False)``), as Mitsuba's ``bitmap`` reads it; ``raw`` (= ``linear``) keeps the
+stored values of a flagged bitmap, as ``bitmap``'s ``raw`` does (which clears the caller's
+flag; ours leaves the caller's bitmap as it is).
 
 Non-finite texels are replaced by 0 with a warning that gives their count, and texels beyond
 ±1e38 are clamped to ±1e38 (also with a warning): filtering values near float32's maximum
@@ -138,37 +154,113 @@ def decode_integer(raw: np.ndarray, encoding: Encoding) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------- readers
-def _read_exr(path: str) -> np.ndarray:
+#: The first 4 bytes of every OpenEXR file.
+EXR_MAGIC = b'\x76\x2f\x31\x01'
+
+#: Rec. 709 / sRGB primaries and white (OpenEXR's default chromaticities): RGB files whose
+#: ``chromaticities`` differ are read through Mitsuba, which converts them (as ``bitmap`` does).
+_REC709 = np.array([0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290])
+
+
+def _rec709(chroma) -> bool:
+    """Whether an OpenEXR ``chromaticities`` attribute (or its absence) means Rec. 709, by
+    Mitsuba's test (squared differences summing to under 1e-6)."""
+    return chroma is None or float(np.sum((np.asarray(chroma, np.float64) - _REC709) ** 2)) < 1e-6
+
+
+def is_openexr(path: str) -> bool:
+    with open(path, 'rb') as f:
+        return f.read(4) == EXR_MAGIC
+
+
+def _exr_colour_channels(names) -> tuple[str, list[str]] | None:
+    """``(kind, channel names)`` that an OpenEXR file's colour is read from: ``RGB``, ``XYZ``,
+    ``Y`` or ``YC`` (luminance/chroma) by the channels' suffixes, case-insensitively, as
+    Mitsuba's reader classifies them; the top level first, else the one layer that has colour
+    channels. None if there are none; :class:`ImageError` if several layers have them."""
+    groups: dict[str, dict[str, str]] = {}
+    for name in names:
+        prefix, _, suffix = name.rpartition('.')
+        groups.setdefault(prefix, {})[suffix.lower()] = name
+
+    def colour(g):
+        for kind, keys in (('RGB', 'rgb'), ('XYZ', 'xyz'), ('YC', ('y', 'ry', 'by'))):
+            if all(k in g for k in keys):
+                return kind, [g[k] for k in keys]
+        if 'y' in g:
+            return ('YC' if 'ry' in g or 'by' in g else 'Y'), [g['y']]
+        return None
+
+    if '' in groups and colour(groups['']):
+        return colour(groups[''])
+    layers = {prefix: colour(g) for prefix, g in groups.items() if prefix and colour(g)}
+    if len(layers) > 1:
+        raise ImageError(f'has {len(layers)} layers with colour channels '
+                         f'({", ".join(sorted(layers))}); expected R,G,B, X,Y,Z or Y at the top '
+                         f'level or in one layer (Mitsuba\'s bitmap refuses such files too): '
+                         f'write the layer to use into a file of its own')
+    return next(iter(layers.values()), None)
+
+
+def _xyz_to_rgb(xyz: np.ndarray) -> np.ndarray:
+    """Linear sRGB of XYZ texels through Mitsuba's own ``Bitmap.convert``, the conversion
+    ``bitmap`` applies to an XYZ image (float32 in, float32 out)."""
+    bmp = mi.Bitmap(np.ascontiguousarray(xyz, dtype=np.float32), mi.Bitmap.PixelFormat.XYZ)
+    return np.array(bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, False),
+                    copy=True)
+
+
+def _read_exr(path: str) -> np.ndarray | None:
+    """Texels of an OpenEXR file as float32 (H, W, 1|3); None where Mitsuba's own reader has to
+    convert the colours (non-Rec. 709 chromaticities, luminance/chroma)."""
     import OpenEXR
     try:
         # interleaved first: RGB(A) comes as one (H, W, 3|4) array, without the copy that
         # stacking separate planes costs (the image's size again, at the peak of a load)
         try:
             with OpenEXR.File(path) as f:
+                # (read inside the block: the header reads empty once the file is closed)
+                chroma = f.header().get('chromaticities')
                 channels = {name: ch.pixels for name, ch in f.channels().items()}
         except ValueError:
             # channels of one group with different pixel types (float RGB with a half A, say)
             # cannot be interleaved: read them one by one below
-            channels = {}
-        for name in ('RGB', 'RGBA'):
-            if name in channels:
-                return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)
+            chroma, channels = None, {}
+        if _rec709(chroma):
+            for name in ('RGB', 'RGBA'):
+                if name in channels:
+                    return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)
+        del channels
         with OpenEXR.File(path, separate_channels=True) as f:
+            chroma = f.header().get('chromaticities')
             channels = {name: ch.pixels for name, ch in f.channels().items()}
     except Exception as e:  # the OpenEXR package raises plain exceptions for corrupt files
         raise ImageError(f'cannot read OpenEXR file "{path}": {e}') from None
-    for names in (('R', 'G', 'B'), ('Y',)):
-        if all(n in channels for n in names):
-            planes = [np.asarray(channels[n], dtype=np.float32) for n in names]
-            return np.stack(planes, axis=-1)
-    raise ImageError(f'OpenEXR file "{path}" has channels {sorted(channels)}; expected R,G,B or Y')
+    try:
+        found = _exr_colour_channels(channels)
+    except ImageError as e:
+        raise ImageError(f'OpenEXR file "{path}" {e}') from None
+    if found is None:
+        raise ImageError(f'OpenEXR file "{path}" has channels {sorted(channels)}; expected '
+                         f'R,G,B, X,Y,Z or Y (with or without A; at the top level or in one '
+                         f'layer, e.g. diffuse.R, diffuse.G, diffuse.B)')
+    kind, names = found
+    if kind == 'YC' or (kind == 'RGB' and not _rec709(chroma)):
+        return None
+    texels = np.stack([np.asarray(channels[n], dtype=np.float32) for n in names], axis=-1)
+    return _xyz_to_rgb(texels) if kind == 'XYZ' else texels
 
 
-def _bitmap_pixels(bmp: mi.Bitmap, what: str) -> tuple[np.ndarray, bool]:
-    """(pixels as stored, is_integer) of a ``mi.Bitmap``; alpha dropped."""
+def _bitmap_pixels(bmp: mi.Bitmap, what: str,
+                   encoding: Encoding | None) -> tuple[np.ndarray, bool, Encoding]:
+    """(pixels, is_integer, encoding applied) of a ``mi.Bitmap``, alpha dropped: 8/16-bit RGB
+    and Y codes as stored (to be decoded under the encoding returned), anything else converted
+    by Mitsuba to linear float32 RGB or Y — the conversion ``bitmap`` applies, sRGB decoding
+    included where the bitmap is flagged sRGB, unless ``encoding`` says otherwise."""
     pf = mi.Bitmap.PixelFormat
     fmt = bmp.pixel_format()
     comp = bmp.component_format()
+    flagged = bmp.srgb_gamma()
     integer = comp in (mi.Struct.Type.UInt8, mi.Struct.Type.UInt16)
     if fmt in (pf.Y, pf.YA):
         target = pf.Y
@@ -177,38 +269,65 @@ def _bitmap_pixels(bmp: mi.Bitmap, what: str) -> tuple[np.ndarray, bool]:
     elif fmt in (pf.XYZ, pf.XYZA):
         target, integer = pf.RGB, False
     else:
-        raise ImageError(f'{what} has pixel format {fmt}; expected Y, YA, RGB or RGBA')
-    if fmt != target or not integer:
-        if integer:
-            bmp = bmp.convert(target, comp, bmp.srgb_gamma())
-        else:
-            bmp = bmp.convert(target, mi.Struct.Type.Float32, False)
+        raise ImageError(f'{what} has pixel format {fmt}; expected Y, YA, RGB, RGBA, XYZ or XYZA')
+    # what the bitmap's values are: sRGB codes where it is flagged so (as Mitsuba's bitmap
+    # reads it), else linear, unless the caller's encoding (or raw) says otherwise
+    applied = encoding if encoding is not None else Encoding('sRGB' if flagged else 'linear')
+    if integer:
+        if fmt != target:
+            bmp = bmp.convert(target, comp, flagged)       # alpha dropped, codes as stored
+    else:
+        if not flagged and encoding is not None and encoding.kind != 'linear':
+            applied = Encoding('linear')       # float pixels not flagged sRGB are linear
+        if flagged and applied.kind != 'sRGB':
+            # the stored values, not decoded (bitmap's raw): on a copy, the caller's stays flagged
+            bmp = mi.Bitmap(bmp)
+            bmp.set_srgb_gamma(False)
+        bmp = bmp.convert(target, mi.Struct.Type.Float32, False)
     arr = np.array(bmp, copy=True)
     if arr.ndim == 2:
         arr = arr[..., None]
-    return arr, integer
+    if not integer and applied.kind == 'gamma':
+        arr = (np.sign(arr) * np.abs(arr) ** applied.gamma).astype(np.float32)
+    return arr, integer, applied
 
 
 def decode_bitmap(bmp: mi.Bitmap, encoding: Encoding | None, what: str) -> DecodedImage:
-    """Texels of a ``mi.Bitmap``; ``encoding=None`` means the format's default."""
-    raw, integer = _bitmap_pixels(bmp, what)
+    """Texels of a ``mi.Bitmap``; ``encoding=None``: as the bitmap is flagged (``srgb_gamma()``:
+    sRGB, else linear), as Mitsuba's ``bitmap`` reads it."""
+    raw, integer, applied = _bitmap_pixels(bmp, what, encoding)
     if not integer:
-        return finish_texels(raw.astype(np.float32), Encoding('linear'), 'float')
-    applied = encoding if encoding is not None else Encoding('sRGB')
+        return finish_texels(raw.astype(np.float32), applied, 'float')
     return finish_texels(decode_integer(raw, applied), applied,
                          'uint8' if raw.dtype == np.uint8 else 'uint16')
 
 
 def read_image(path: str, encoding: Encoding | None) -> DecodedImage:
-    """Read and decode ``path``; ``encoding=None`` means the format's default."""
+    """Read and decode ``path``; ``encoding=None`` means the format's default. The reader is
+    chosen by the file's content (OpenEXR's magic number), whatever its extension."""
     if not os.path.isfile(path):
         raise ImageError(f'file "{path}" does not exist')
-    if path.lower().endswith('.exr'):
-        return finish_texels(_read_exr(path), Encoding('linear'), 'float')
+    try:
+        exr = is_openexr(path)
+    except OSError as e:
+        raise ImageError(f'cannot read image file "{path}": {e.strerror}') from None
+    if exr:
+        texels = _read_exr(path)
+        if texels is not None:
+            return finish_texels(texels, Encoding('linear'), 'float')
     try:
         bmp = mi.Bitmap(path)
     except Exception as e:
-        raise ImageError(f'cannot read image file "{path}": {" ".join(str(e).split())}') from None
+        note = ''
+        if not exr and path.lower().endswith('.exr'):
+            note = ' (its content is not OpenEXR: it does not begin with OpenEXR\'s magic number)'
+        raise ImageError(f'cannot read image file "{path}"{note}: '
+                         f'{" ".join(str(e).split())}; expected OpenEXR or a format mi.Bitmap '
+                         f'reads (PNG, JPEG, RGBE .hdr, PFM, PPM, TGA, BMP)') from None
+    # a file has no sRGB flag of its own: Mitsuba sets one for 8/16-bit formats
+    if encoding is None and bmp.component_format() in (mi.Struct.Type.UInt8,
+                                                        mi.Struct.Type.UInt16):
+        encoding = Encoding('sRGB')
     return decode_bitmap(bmp, encoding, f'image file "{path}"')
 
 

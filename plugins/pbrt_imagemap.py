@@ -5,8 +5,8 @@ pbrt-v4's filters (pbrt section 10.4).
 
 | parameter | type | default | meaning | differentiable |
 |---|---|---|---|---|
-| filename | string | — | image file: OpenEXR (via the OpenEXR package) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...) | no |
-| bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only) | no |
+| filename | string | — | image file: OpenEXR (via the OpenEXR package: channels R,G,B, X,Y,Z — converted to linear sRGB as ``bitmap`` converts them — or Y, plus A, at the top level or in one layer such as ``diffuse.R``) or anything ``mi.Bitmap`` reads (PNG, JPEG, HDR, PFM, ...); the format is found from the file's content, not its name | no |
+| bitmap | Bitmap | — | an ``mi.Bitmap`` object instead of a file (runtime only); read as ``bitmap`` reads it: sRGB-decoded where its ``srgb_gamma()`` is set, linear where not | no |
 | data | tensor | — | texels as a ``TensorXf`` of shape (H, W, 1 or 3), linear float32 (runtime only; integer tensors are refused; ``params['...data']`` is this linear tensor for every source, where ``bitmap`` exposes 8-bit images as uint8 sRGB codes) | yes |
 | filter | string | bilinear | `point`, `bilinear`, `trilinear`, `ewa` (also `EWA`, as pbrt-v4) or `box` (exact average over the footprint; not with wrap `octahedralsphere`) | no |
 | filter_type | string | — | Mitsuba ``bitmap`` alias of filter: `nearest` (= point) or `bilinear` | no |
@@ -16,8 +16,8 @@ pbrt-v4's filters (pbrt section 10.4).
 | wrap_mode | string | — | Mitsuba ``bitmap`` alias of wrap: `repeat`, `mirror` or `clamp` | no |
 | scale | float | 1 | factor applied to every texel value | yes |
 | invert | boolean | false | return ``max(0, 1 - scale·value)`` | no |
-| encoding | string | sRGB (8/16-bit), linear (float) | decoding of integer images: `sRGB`, `linear` or `gamma G` | no |
-| raw | boolean | false | Mitsuba ``bitmap`` alias: true = encoding `linear` | no |
+| encoding | string | sRGB (8/16-bit files), linear (float files); a ``bitmap`` object's ``srgb_gamma()`` flag | decoding of integer images and of ``bitmap`` objects flagged sRGB: `sRGB`, `linear` or `gamma G` | no |
+| raw | boolean | false | Mitsuba ``bitmap`` alias: true = encoding `linear` (a flagged ``bitmap`` object's stored values, as ``bitmap``'s ``raw``) | no |
 | trilinearwidth | string | v3 | footprint width of point/bilinear/trilinear: `v3` = max abs derivative (pbrt-v3), `v4` = twice that (pbrt-v4) | no |
 | format | string | auto | Mitsuba ``bitmap`` storage option, accepted for drop-in use; storage is always float32 | no |
 | accel | boolean | true | Mitsuba ``bitmap`` option, accepted for drop-in use; no effect | no |

@@ -137,6 +137,59 @@ def test_bad_parameter_is_refused_with_a_clear_message(name, params, fragments):
         assert '"dir"' not in message
 
 
+def _image_file(kind, path):
+    """Image files that neither ``bitmap`` nor ``pbrt_imagemap`` can use (a user trial's)."""
+    import OpenEXR
+    plane = np.random.default_rng(0).uniform(0, 1, (4, 5)).astype(np.float32)
+    channels = {'layers': {f'{layer}.{c}': plane for layer in ('diffuse', 'specular')
+                           for c in 'RGB'},
+                'rg': {'R': plane, 'G': plane}}.get(kind)
+    if channels is not None:
+        header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage}
+        with OpenEXR.File(header, channels) as f:
+            f.write(path)
+    elif kind == 'text':
+        with open(path, 'w') as f:
+            f.write('not an image\n')
+    else:                                           # an OpenEXR file cut short
+        mi.Bitmap(np.ones((16, 16, 3), np.float32)).write(path)
+        with open(path, 'rb') as f:
+            data = f.read()
+        with open(path, 'wb') as f:
+            f.write(data[:len(data) // 2])
+
+
+@pytest.mark.parametrize('kind, fragments', [
+    ('layers', ['has 2 layers with colour channels (diffuse, specular)',
+                'expected R,G,B, X,Y,Z or Y at the top level or in one layer']),
+    ('rg', ["has channels ['G', 'R']", 'expected R,G,B, X,Y,Z or Y']),
+    ('text', ['cannot read image file', 'its content is not OpenEXR',
+              'expected OpenEXR or a format mi.Bitmap reads (PNG, JPEG']),
+    ('truncated', ['cannot read OpenEXR file']),
+])
+def test_image_files_without_a_usable_image_are_refused_with_a_clear_message(kind, fragments,
+                                                                               tmp_path):
+    """Files that Mitsuba's ``bitmap`` refuses too: several colour layers (the package named
+    only R,G,B or Y before; a single layer is read, as ``bitmap`` reads it), R and G alone, a
+    text file named ``.exr`` (the reader is chosen by content: the message says the content is
+    not OpenEXR where it used to say "cannot read OpenEXR file"), an OpenEXR file cut short.
+    The error names the plugin, the parameter, the file and what is accepted; the file is left
+    as it was."""
+    path = str(tmp_path / 'img.exr')
+    _image_file(kind, path)
+    with open(path, 'rb') as f:
+        before = f.read()
+    with pytest.raises(RuntimeError):
+        mi.load_dict({'type': 'bitmap', 'filename': path})
+    with pytest.raises(RuntimeError) as e:
+        mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    message = ' '.join(str(e.value).split())
+    for f in ['pbrt_imagemap: parameter "filename"', path] + fragments:
+        assert f in message, (f, message[-500:])
+    with open(path, 'rb') as f:
+        assert f.read() == before
+
+
 def _every_float_parameter():
     """(plugin, parameter) for every parameter whose documented type includes float (the
     docstring tables, the same source as ``info`` and the README)."""

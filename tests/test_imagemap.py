@@ -781,11 +781,16 @@ def _bitmap_of_kind(kind, rng, h, w):
 
 @pytest.mark.parametrize('kind', ['xyz_f32_lin', 'y_f32_lin', 'ya_f32_lin', 'ya_u8_srgb',
                                   'ya_u16_srgb', 'rgba_f16_lin', 'rgba_f32_lin', 'rgba_u8_srgb',
-                                  'rgba_u16_srgb', 'rgb_f32_srgb', 'rgba_f32_srgb', 'rgb_u32_lin'])
+                                  'rgba_u16_srgb', 'rgb_f32_srgb', 'rgba_f32_srgb', 'rgb_u32_lin',
+                                  'rgb_u8_lin', 'rgb_u16_lin', 'y_u8_lin', 'ya_u16_lin',
+                                  'rgba_u8_lin', 'xyz_u8_srgb', 'xyz_u16_lin'])
 def test_bitmap_objects_of_every_format_match_mitsuba_bitmap(kind, rng):
     """The ``bitmap`` parameter with the pixel formats and component types a user's
     ``mi.Bitmap`` may have — XYZ (converted to RGB), Y/YA, RGBA (alpha dropped), float16/32,
-    8/16/32-bit integers, and float pixels flagged sRGB (which Mitsuba linearises) — equals
+    8/16/32-bit integers flagged sRGB or not (``_lin``: ``srgb_gamma()`` False, as
+    ``mi.Bitmap`` of a uint16 array is by default; Mitsuba reads them linear, v/255 or v/65535,
+    where the package used to apply the sRGB curve: 0.2140 for a uint16 32768, 0.5000 in
+    ``bitmap``), and float pixels flagged sRGB (which Mitsuba linearises) — equals
     Mitsuba's ``bitmap`` given the same object, at texel centres and random bilinear lookups
     (``eval`` and ``eval_1``). ``format = variant`` keeps Mitsuba's texels in float32 (by default
     it stores integer images as float16, 5e-4 relative). Mitsuba decodes sRGB codes with its
@@ -812,6 +817,51 @@ def test_bitmap_objects_of_every_format_match_mitsuba_bitmap(kind, rng):
     view[...] = 0
     assert not np.array(bmp, copy=True).any()
     np.testing.assert_array_equal(A(ours.eval(si)), got)
+
+
+@pytest.mark.parametrize('raw', [False, True])
+@pytest.mark.parametrize('filt', ['nearest', 'bilinear'])
+@pytest.mark.parametrize('kind', ['rgb_u8_srgb', 'rgb_u8_lin', 'rgb_u16_srgb', 'rgb_u16_lin',
+                                  'rgb_f32_srgb', 'rgb_f32_lin', 'y_u8_lin', 'ya_u16_srgb'])
+def test_bitmap_objects_srgb_flag_and_raw_match_mitsuba_bitmap(kind, filt, raw, rng):
+    """What a ``mi.Bitmap``'s values mean is its ``srgb_gamma()`` flag, for integer and float
+    pixels alike, and ``raw`` keeps the stored values: Mitsuba's ``bitmap`` reads a flagged
+    bitmap through the sRGB curve and an unflagged one (or any with ``raw``) as v/255, v/65535
+    or the float value. The package decoded every 8/16-bit bitmap as sRGB (0.2159 for a uint8
+    128 not flagged, ``bitmap`` 0.5020) and decoded a flagged float bitmap even with ``raw``
+    (0.2140 for 0.5, ``bitmap`` 0.5). Reference: ``bitmap`` given an identical bitmap of its
+    own (``bitmap`` with ``raw`` clears the flag of the bitmap it is given; ours leaves the
+    caller's as it was), ``format = variant`` (float32 texels), nearest and bilinear lookups at
+    texel centres and random uv: atol 2e-6, as above (Mitsuba's rational sRGB curve for 16-bit
+    codes, ≤ 4.2e-7; float32 rounding of bilinear weights); a wrong decode is ≥ 1e-3 off."""
+    h, w = 5, 7
+    seed = int(rng.integers(2**31))
+    theirs_bmp = _bitmap_of_kind(kind, np.random.default_rng(seed), h, w)
+    ours_bmp = _bitmap_of_kind(kind, np.random.default_rng(seed), h, w)
+    flag = ours_bmp.srgb_gamma()
+    theirs = mi.load_dict({'type': 'bitmap', 'bitmap': theirs_bmp, 'format': 'variant',
+                           'raw': raw, 'filter_type': filt})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': ours_bmp, 'raw': raw,
+                         'filter_type': filt})
+    assert ours_bmp.srgb_gamma() == flag
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (300, 2))]))
+    np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=2e-6)
+    np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=2e-6)
+
+
+def test_linear_integer_bitmaps_of_the_user_trial_read_as_bitmap_reads_them():
+    """The user trial's values: a uint16 ``mi.Bitmap`` of 32768 (not flagged sRGB, numpy's
+    default) reads 32768/65535 and a uint8 128 after ``set_srgb_gamma(False)`` reads 128/255, as
+    in ``bitmap`` (before: 0.2140 and 0.2159, the sRGB curve)."""
+    b16 = mi.Bitmap(np.full((4, 4, 3), 32768, np.uint16))
+    b8 = mi.Bitmap(np.full((4, 4, 3), 128, np.uint8))
+    b8.set_srgb_gamma(False)
+    si = make_si([[0.5, 0.5]])
+    for bmp, want in ((b16, 32768 / 65535), (b8, 128 / 255)):
+        got = A(mi.load_dict({'type': 'pbrt_imagemap', 'bitmap': bmp}).eval(si))
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+        ref = A(mi.load_dict({'type': 'bitmap', 'bitmap': bmp}).eval(si))
+        np.testing.assert_allclose(got, ref, rtol=5e-4)    # bitmap keeps 16-bit as float16
 
 
 def test_bad_texels_of_a_bitmap_object_are_fixed_in_the_texture_not_in_the_bitmap(capfd):
@@ -1143,6 +1193,107 @@ def test_exr_files_with_alpha_match_bitmap(kind, rng, tmp_path):
     names = {'RGBA': 'RGBA', 'RGBA_half': 'RGBA', 'YA': 'YA'}[kind]
     path = str(tmp_path / 'img.exr')
     _write_exr_channels(path, {n: plane() for n in names})
+    theirs = mi.load_dict({'type': 'bitmap', 'filename': path, 'format': 'variant'})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
+    np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
+
+
+def _xyz_exr(path, rng, h, w, dtype=np.float32, alpha=False):
+    """An XYZ OpenEXR file as Mitsuba's ``hdrfilm`` writes one (``pixel_format="xyz"``: channels
+    X, Y, Z through ``mi.Bitmap.write``), of random linear sRGB colours."""
+    rgb = rng.uniform(0, 1, (h, w, 3))
+    m = np.array([[0.412453, 0.357580, 0.180423], [0.212671, 0.715160, 0.072169],
+                  [0.019334, 0.119193, 0.950227]])
+    xyz = rgb @ m.T
+    if alpha:
+        xyz = np.concatenate([xyz, rng.uniform(0, 1, (h, w, 1))], -1)
+    pf = mi.Bitmap.PixelFormat.XYZA if alpha else mi.Bitmap.PixelFormat.XYZ
+    mi.Bitmap(xyz.astype(dtype), pf).write(path)
+    return rgb
+
+
+#: Mitsuba's XYZ -> linear sRGB matrix (``xyz_to_srgb``, which ``Bitmap.convert`` applies).
+XYZ_TO_SRGB = np.array([[3.240479, -1.537150, -0.498535], [-0.969256, 1.875991, 0.041556],
+                        [0.055648, -0.204043, 1.057311]])
+
+
+@pytest.mark.parametrize('filt', ['nearest', 'bilinear'])
+@pytest.mark.parametrize('kind', ['xyz', 'xyz_half', 'xyza', 'xyz_openexr', 'layer', 'layer_y',
+                                  'lowercase', 'chroma_xyz', 'chroma_ap1', 'luma_chroma'])
+def test_exr_colour_layouts_match_bitmap(kind, filt, rng, tmp_path):
+    """OpenEXR files whose colour is not plain R,G,B / Y channels, read as Mitsuba's ``bitmap``
+    reads them: X,Y,Z (``hdrfilm``'s ``pixel_format="xyz"``; float, half, with alpha, and
+    written by the OpenEXR package) converted to linear sRGB — the package read Y alone, grey
+    0.2126 for the XYZ of pure red, where ``bitmap`` gives (1.0, -8e-5, -2e-5); the one layer of
+    a single-layer file (``diffuse.R,G,B``, ``depth.Y``; refused before); lower-case channel
+    names; RGB with the chromaticities of the XYZ primaries or ACES AP1 (Mitsuba converts them
+    to Rec. 709; the package read them as Rec. 709); luminance/chroma Y,RY,BY (the package read
+    Y alone). Reference: ``bitmap`` of the same file with ``format = variant`` (float32 texels),
+    nearest and bilinear at texel centres and random uv inside and outside [0, 1]². Both read
+    the same float texels through the same conversion (``Bitmap.convert`` for XYZ, Mitsuba's
+    reader for the others), so only float32 rounding of the bilinear weights remains: atol
+    1e-6, as the parity tests. XYZ is also checked against Mitsuba's matrix applied in float64
+    at texel centres (atol 2e-6: the float32 matrix product)."""
+    import OpenEXR
+    h, w = 5, 6
+    path = str(tmp_path / 'img.exr')
+    plane = lambda: rng.uniform(0.05, 1, (h, w)).astype(np.float32)
+    ap1 = (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767)
+    rgb = None
+    if kind in ('xyz', 'xyz_half', 'xyza'):
+        rgb = _xyz_exr(path, rng, h, w, np.float16 if kind == 'xyz_half' else np.float32,
+                       alpha=kind == 'xyza')
+    elif kind == 'xyz_openexr':
+        _write_exr_channels(path, {'X': plane(), 'Y': plane(), 'Z': plane()})
+    elif kind == 'layer':
+        _write_exr_channels(path, {'diffuse.R': plane(), 'diffuse.G': plane(),
+                                   'diffuse.B': plane()})
+    elif kind == 'layer_y':
+        _write_exr_channels(path, {'depth.Y': plane()})
+    elif kind == 'lowercase':
+        _write_exr_channels(path, {'r': plane(), 'g': plane(), 'b': plane()})
+    elif kind == 'luma_chroma':
+        _write_exr_channels(path, {'Y': plane(), 'RY': plane() - 0.5, 'BY': plane() - 0.5})
+    else:
+        chroma = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1 / 3, 1 / 3) if kind == 'chroma_xyz' else ap1
+        header = {'compression': OpenEXR.ZIP_COMPRESSION, 'type': OpenEXR.scanlineimage,
+                  'chromaticities': chroma}
+        with OpenEXR.File(header, {'R': plane(), 'G': plane(), 'B': plane()}) as f:
+            f.write(path)
+    theirs = mi.load_dict({'type': 'bitmap', 'filename': path, 'format': 'variant',
+                           'filter_type': filt})
+    ours = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path, 'filter_type': filt})
+    si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (300, 2))]))
+    np.testing.assert_allclose(A(ours.eval(si)), A(theirs.eval(si)), atol=1e-6)
+    np.testing.assert_allclose(A(ours.eval_1(si)), A(theirs.eval_1(si)), atol=1e-6)
+    if rgb is not None and mi.is_rgb:
+        stored = np.array(mi.Bitmap(path), dtype=np.float64)[..., :3]      # the file's XYZ
+        want = (stored @ XYZ_TO_SRGB.T).reshape(-1, 3)
+        got = A(ours.eval(make_si(_texel_centres(w, h)))).reshape(-1, 3)
+        np.testing.assert_allclose(got, want, atol=2e-6)
+        # and that is the colour written, to the rounding of Mitsuba's 6-digit matrices (and
+        # of half floats)
+        np.testing.assert_allclose(got, rgb.reshape(-1, 3), atol=2e-3 if 'half' in kind else 2e-5)
+
+
+@pytest.mark.parametrize('case', ['png_named_exr', 'exr_named_png', 'exr_named_upper'])
+def test_file_format_is_found_from_the_content_not_the_name(case, rng, tmp_path):
+    """The reader is chosen by the file's first bytes, as ``mi.Bitmap`` (and so ``bitmap``)
+    chooses: a PNG named ``.exr`` is read as the PNG it is (it failed with "cannot read OpenEXR
+    file"), an OpenEXR file named ``.png`` or ``.EXR`` through the OpenEXR reader. Reference:
+    ``bitmap`` of the same file (8-bit sRGB through Mitsuba's own table, or float32 texels:
+    atol 1e-6, as the parity tests)."""
+    h, w = 4, 5
+    if case == 'png_named_exr':
+        path = str(tmp_path / 'img.exr')
+        bmp = mi.Bitmap(rng.integers(0, 256, (h, w, 3)).astype(np.uint8), mi.Bitmap.PixelFormat.RGB)
+        bmp.set_srgb_gamma(True)
+        bmp.write(str(tmp_path / 'img.png'))
+        os.rename(str(tmp_path / 'img.png'), path)
+    else:
+        path = str(tmp_path / ('img.png' if case == 'exr_named_png' else 'img.EXR'))
+        _write_exr_channels(path, {c: rng.uniform(0, 1, (h, w)).astype(np.float32) for c in 'RGB'})
     theirs = mi.load_dict({'type': 'bitmap', 'filename': path, 'format': 'variant'})
     ours = mi.load_dict({'type': 'pbrt_imagemap', 'filename': path})
     si = make_si(np.concatenate([_texel_centres(w, h), rng.uniform(-1, 2, (200, 2))]))
