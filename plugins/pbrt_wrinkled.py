@@ -4,10 +4,10 @@
 |---|---|---|---|---|
 | octaves | integer | 8 | maximum number of octaves (0–30) | no |
 | roughness | float | 0.5 | ω, the weight ratio between successive octaves (≥ 0; roughness^octaves ≤ 1e30) | no |
-| aamode | string | clamp | `clamp` (pbrt: clamped octaves replaced by their mean 0.2) or `none` (all octaves) | no |
+| aamode | string | clamp | `clamp` (pbrt: octaves finer than the footprint replaced by their mean 0.2, each at its own weight: pbrt counts one twice, see Deviations from pbrt) or `none` (all octaves) | no |
 | (3D mapping) | | | the texture-space transform, see the mapping table | no |
 
-``Σ ωⁱ·|Noise(1.99ⁱ·p)|``; a float texture (grey as colour).
+``Σ_{i < octaves} ωⁱ·|Noise(1.99ⁱ·p)|``; a float texture (grey as colour).
 """
 
 import mitsuba as mi

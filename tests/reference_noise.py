@@ -105,10 +105,16 @@ def turbulence(p, dpdx, dpdy, omega, max_octaves, antialias=True):
     for k in range(len(p)):
         n_int = int(math.floor(n[k]))
         total, lam, o = _full_octaves(p[k:k + 1], n_int, omega, abs)
-        part = smoothstep(.3, .7, n[k] - n_int)
-        total += o * ((1 - part) * 0.2 + part * abs(noise3(_scaled(p[k:k + 1], lam))[0]))
-        for _ in range(n_int, max_octaves):
-            total += o * 0.2
+        # Octave n_int fades from its mean 0.2 to |noise|; each later octave up to max_octaves - 1
+        # is its mean, at its own weight ωⁱ. pbrt restarts the clamped octaves at n_int without
+        # advancing o (octave n_int counted twice, max_octaves + 1 octaves): the package deviates
+        # from pbrt there on purpose (README "Deviations from pbrt"), and so does this reference.
+        for i in range(n_int, max_octaves):
+            if i == n_int:
+                part = smoothstep(.3, .7, n[k] - n_int)
+                total += o * ((1 - part) * 0.2 + part * abs(noise3(_scaled(p[k:k + 1], lam))[0]))
+            else:
+                total += o * 0.2
             o *= omega
         out[k] = total
     return out
