@@ -73,9 +73,8 @@ class SceneCache:
         if self._scene is not None and shapes.index != 0 and \
                 self._scene[0].index == shapes.index:
             return self._scene[2]
-        hierarchy = mi.traverse(scene).hierarchy
-        nodes = list(hierarchy.keys())
-        plain = normal_maps(hierarchy)
+        nodes = list(mi.traverse(scene).hierarchy.keys())
+        plain = normal_maps(nodes)
         for tex in plain.values():
             if is_pbrt_texture(tex):
                 tex.read_without_footprint()
@@ -83,8 +82,9 @@ class SceneCache:
                    uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
+        direct = pixel_readers(nodes)
         needs = SceneNeeds(bool(readers), specular, reader_shapes(scene, readers),
-                           any(filters_film_kernel(t) for t in readers))
+                           any(filters_film_kernel(t) for t in readers if id(t) in direct))
         self._scene = (shapes, readers, needs)
         return needs
 
@@ -102,22 +102,66 @@ class SceneCache:
         return camera
 
 
-def normal_maps(hierarchy) -> dict:
-    """The textures that ``normalmap`` BSDFs read as their normal map, and those nested in them
-    (``{id: texture}``, from a traversal's ``hierarchy``: object → (parent, depth)): pbrt-v4
-    reads a normal map without a footprint, and so do our textures there
-    (:meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.read_without_footprint`). A texture object
-    that a normal map shares with another slot is read without a footprint there too."""
-    parent = {id(node): up for node, (up, _) in hierarchy.items()}
-    found = {}
-    for node in hierarchy:
-        if not isinstance(node, mi.Texture):
+def children(obj) -> dict:
+    """The objects and values that ``obj.traverse`` puts, by name (its direct children: the
+    ``normalmap`` and ``nested_bsdf`` of a ``normalmap`` BSDF, a composite's nested textures)."""
+    class Collect(mi.TraversalCallback):          # (the current variant's base class)
+        def __init__(self):
+            super().__init__()
+            self.values = {}
+
+        def put(self, name, value, flags, cpptype=None):
+            self.values[name] = value
+
+    collect = Collect()
+    obj.traverse(collect)
+    return collect.values
+
+
+def _textures_below(start) -> dict:
+    """The textures in ``start`` and those nested in them (``{id: texture}``)."""
+    found, stack = {}, list(start)
+    while stack:
+        tex = stack.pop()
+        if not isinstance(tex, mi.Texture) or id(tex) in found:
             continue
-        up = parent.get(id(node))
-        while isinstance(up, mi.Texture):
-            up = parent.get(id(up))
-        if isinstance(up, mi.BSDF) and up.class_name() == 'NormalMap':
-            found[id(node)] = node
+        found[id(tex)] = tex
+        stack.extend(children(tex).values())
+    return found
+
+
+def normal_maps(nodes) -> dict:
+    """The textures that ``normalmap`` BSDFs among ``nodes`` read as their normal map, and those
+    nested in them (``{id: texture}``): pbrt-v4 reads a normal map without a footprint, and so
+    do our textures there (:meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.read_without_footprint`).
+    Found from each BSDF's own children, so also a texture object that the normal map shares
+    with another slot (a traversal's ``hierarchy`` records one parent per object); it is then
+    read without a footprint there too."""
+    return _textures_below(children(n).get('normalmap') for n in nodes
+                           if isinstance(n, mi.BSDF) and n.class_name() == 'NormalMap')
+
+
+def pixel_readers(nodes) -> dict:
+    """The textures that can read a pixel's footprint where they are used (``{id: texture}``):
+    those a BSDF, emitter or other object among ``nodes`` reads, and those nested in them —
+    not a normal map (read without a footprint) and not what a composite that multiplies
+    spatially varying values nests (its textures keep the sample's footprint:
+    :meth:`~mitsuba_pbrt_tex.texture.PbrtTexture.multiplies_varying`)."""
+    found, stack = {}, []
+    for node in nodes:
+        if isinstance(node, mi.Texture):
+            continue
+        slots = children(node)
+        if isinstance(node, mi.BSDF) and node.class_name() == 'NormalMap':
+            slots.pop('normalmap', None)
+        stack.extend(v for v in slots.values() if isinstance(v, mi.Texture))
+    while stack:
+        tex = stack.pop()
+        if id(tex) in found:
+            continue
+        found[id(tex)] = tex
+        if not (is_pbrt_texture(tex) and tex.multiplies_varying()):
+            stack.extend(v for v in children(tex).values() if isinstance(v, mi.Texture))
     return found
 
 

@@ -200,7 +200,8 @@ class PbrtTexture:
         a ``normalmap`` BSDF reads). A filtered normal map is a smoother one: the shading it
         gives is not the average of the shading of the normals it averages (measured in a user
         trial: a tiled photo normal map on a rough conductor 6% darker than under ``path``, at
-        any spp)."""
+        any spp). It stays so for the object's life, also in another scene where it is not a
+        normal map (load that scene's textures afresh)."""
         self._without_footprint = True
 
     def multiplies_varying(self) -> bool:
@@ -209,7 +210,10 @@ class PbrtTexture:
         ``footprint="pixel"``: a pixel's average of a product is not the product of the pixel's
         averages, and that bias does not fall with spp (a user trial: ``pbrt_scale`` of two box
         images 42% darker than the reference on a plane's far rows). With the sample's
-        footprint it shrinks with the footprint, as in pbrt."""
+        footprint it shrinks with the footprint, as in pbrt. (``pbrt_bilerp``'s and
+        ``pbrt_directionmix``'s weights are smooth — bilinear in uv, the normal's direction —
+        so their covariance with a texture within one pixel is of second order: they keep the
+        pixel footprint.)"""
         return False
 
     def varies(self, *names: str) -> bool:
@@ -217,8 +221,9 @@ class PbrtTexture:
         return any(self._nested[n].is_spatially_varying() for n in names)
 
     def _lookup(self, si, kind: Kind, active):
-        """:meth:`evaluate` (without the footprint: :meth:`read_without_footprint`), or within :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups`
-        — where a BSDF's ``eval`` and ``sample`` ask the same interaction (the same JIT variables)
+        """:meth:`evaluate` (without a footprint: :meth:`read_without_footprint`; its children
+        with the sample's: :meth:`multiplies_varying`), or within
+        :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups` — where a BSDF's ``eval`` and ``sample`` ask the same interaction (the same JIT variables)
         — the first query's value on its lanes and :meth:`evaluate` only on the lanes it did not
         cover, in a symbolic branch (packets with none skip it)."""
         if self._without_footprint:

@@ -61,6 +61,9 @@ class Plugin(PbrtTexture):
         b = self.nested_eval('outside', si, kind, active & ~inside)
         return dr.select(inside, a, b)
 
+    def multiplies_varying(self):
+        return self.varies('inside', 'outside')     # (times the dots' indicator)
+
     def mean(self):
         """The average over the noise's period (256 × 256 cells): the fraction of cells that
         hold a dot (of area π·0.35², inside its cell) weighs the two means."""

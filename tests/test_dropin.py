@@ -190,26 +190,42 @@ def test_sampled_pdf_equals_pdf_position_on_texel_edges(filt, wrap, rng):
                                    rtol=1e-4 if filt != 'point' else 0)
 
 
-@pytest.mark.parametrize('tiles', [3, 7])
-def test_sampled_weight_is_flat_on_a_tiled_sparse_light(tiles, rng):
+SPARSE_LIGHT_MAPPINGS = [
+    ('3x3 tiles', {'uscale': 3, 'vscale': 3}),
+    ('7x7 tiles', {'uscale': 7, 'vscale': 7}),
+    ('7x7 point', {'uscale': 7, 'vscale': 7, 'filter': 'point'}),
+    ('rotated 90, 7x7', {'to_uv': T().scale([7, 7, 1]) @ T().translate([1, 0, 0])
+                         @ T().rotate([0, 0, 1], 90)}),
+    ('mirrored 3x3', {'uscale': 3, 'vscale': -3, 'vdelta': 1, 'wrap': 'mirror'}),
+]
+
+
+@pytest.mark.parametrize('name,mapping', SPARSE_LIGHT_MAPPINGS,
+                         ids=[m[0] for m in SPARSE_LIGHT_MAPPINGS])
+def test_sampled_weight_is_flat_on_a_tiled_sparse_light(name, mapping, rng):
     """value / pdf of sample_position (what a light tracer weights a sample by) is the same
-    for every sample of a tiled light that is mostly black: two lit texels on a 2048×4 image,
-    tiled 3× / 7× in u and v. The returned density was the texture-space sampler's at the
-    point it drew; mapped to uv and back that point moves by a few ulps, and next to a black
-    texel's corner, where the density vanishes, the value there was up to 1.85× (here) the
-    density's share — on a mask light from a user trial one sample weighed 4e12 where 0.44 was
-    due. Tolerance 1e-4 relative: float32 rounding of the position (measured ≤ 5e-6)."""
-    img = np.zeros((4, 2048, 1))
-    img[2, 682], img[1, 1365] = 1.0, 0.5
-    tex = imagemap(img, uscale=tiles, vscale=tiles)
-    s = rng.random((2 ** 18, 2))
-    uv, pdf = tex.sample_position(mi.Point2f(s[:, 0], s[:, 1]))
-    value, pdf = A(tex.eval_1(make_si(A(uv)))), A(pdf)
-    live = value > 0
-    assert live.mean() > 0.99 and np.all(pdf[live] > 0)
-    weight = value[live] / pdf[live]
-    assert np.all(np.abs(weight / np.median(weight) - 1) < 1e-4), \
-        (weight.min() / np.median(weight), weight.max() / np.median(weight))
+    for every sample of a tiled light that is mostly black: two lit texels on a 2048×4 image
+    and on its transpose, tiled, rotated, mirrored. The returned density was the texture-space
+    sampler's at the point it drew; mapped to uv and back that point moves by a few ulps, and
+    next to a black texel's corner, where the density vanishes, the value there was up to
+    1.85× (here) the density's share — on a mask light from a user trial one sample weighed 4e12
+    where 0.44 was due. And the density at a uv must be read where the lookup reads the value:
+    a 90° rotation's rounding term (cos = -4e-8) and a mirror wrap applied to the position
+    before the lookup put them up to 4e-3 texel apart (weights 0.70–1.17× and 0.96–1.02× their
+    median). Tolerance 1e-4 relative: float32 rounding (measured: 0)."""
+    for shape in ((4, 2048), (2048, 4)):
+        img = np.zeros(shape + (1,))
+        h, w = shape
+        img[h // 2, w // 3], img[h // 4, 2 * w // 3] = 1.0, 0.5
+        tex = imagemap(img, **mapping)
+        s = rng.random((2 ** 18, 2))
+        uv, pdf = tex.sample_position(mi.Point2f(s[:, 0], s[:, 1]))
+        value, pdf = A(tex.eval_1(make_si(A(uv)))), A(pdf)
+        live = value > 0
+        assert live.mean() > 0.99 and np.all(pdf[live] > 0)
+        weight = value[live] / pdf[live]
+        assert np.all(np.abs(weight / np.median(weight) - 1) < 1e-4), \
+            (shape, weight.min() / np.median(weight), weight.max() / np.median(weight))
 
 
 # (to_uv, uscale/vscale, ...) combinations whose density is exact (see mitsuba_pbrt_tex.sampling)

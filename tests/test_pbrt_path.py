@@ -483,12 +483,47 @@ def test_normal_maps_are_read_without_footprint(filter_, footprint, rng):
             spp=4, seed=3))
 
     tiled = {'raw': True, 'to_uv': T().scale([8, 8, 1])}
-    images = [render({'type': 'bitmap', 'bitmap': mi.Bitmap(normals), 'filter_type': 'bilinear',
-                      **tiled}),
-              render({'type': 'pbrt_imagemap', 'data': mi.TensorXf(normals), 'filter': filter_,
-                      **tiled})]
-    assert images[0].mean() > 0.05
-    np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
+    reference = render({'type': 'bitmap', 'bitmap': mi.Bitmap(normals),
+                        'filter_type': 'bilinear', **tiled})
+    assert reference.mean() > 0.05
+    ours = {'type': 'pbrt_imagemap', 'data': mi.TensorXf(normals), 'filter': filter_, **tiled}
+    np.testing.assert_allclose(render(ours), reference, rtol=1e-5, atol=1e-6)
+    # nested in a composite (the composite's nested textures are normal-map textures too)
+    nested = {'type': 'pbrt_scale', 'tex': ours, 'scale': 1.0}
+    np.testing.assert_allclose(render(nested), reference, rtol=1e-5, atol=1e-6)
+
+
+def test_a_normal_map_shared_with_a_reflectance_is_found():
+    """A texture object that is a normal map on one shape and a reflectance on another (a
+    traversal records it under one parent: the other BSDF) is still read without a footprint —
+    in both slots (README): the image equals the one with Mitsuba's bitmap in both."""
+    normals = np.random.default_rng(5).uniform(0, 1, (32, 32, 3)).astype(np.float32)
+    normals[..., 2] = 1.0
+    film = {'type': 'hdrfilm', 'width': 40, 'height': 30, 'rfilter': {'type': 'box'}}
+
+    def render(tex):
+        return np.array(mi.render(mi.load_dict({
+            'type': 'scene', 'integrator': {'type': 'pbrt_path'},
+            'sensor': {'type': 'perspective', 'fov': 50, 'film': film,
+                       'to_world': T().look_at([0, -2.5, 1.5], [0, 0, 0], [0, 0, 1])},
+            'textured': {'type': 'sphere', 'center': [1.2, 0, 0.4], 'radius': 0.4,
+                         'bsdf': {'type': 'diffuse', 'reflectance': tex}},
+            'plane': {'type': 'rectangle', 'bsdf': {
+                'type': 'normalmap', 'normalmap': tex,
+                'bsdf': {'type': 'roughplastic', 'alpha': 0.2, 'diffuse_reflectance': {
+                    'type': 'pbrt_imagemap', 'data': mi.TensorXf(np.full((4, 4, 3), 0.5,
+                                                                          np.float32)),
+                    'filter': 'trilinear'}}}},
+            'sun': {'type': 'directional', 'direction': [0.3, 0.5, -1], 'irradiance': 3.0}}),
+            spp=4, seed=3))
+
+    tiled = {'raw': True, 'to_uv': T().scale([8, 8, 1])}
+    reference = render(mi.load_dict({'type': 'bitmap', 'bitmap': mi.Bitmap(normals),
+                                     'filter_type': 'bilinear', **tiled}))
+    ours = render(mi.load_dict({'type': 'pbrt_imagemap', 'data': mi.TensorXf(normals),
+                                'filter': 'ewa', **tiled}))
+    assert reference.mean() > 0.05
+    np.testing.assert_allclose(ours, reference, rtol=1e-5, atol=1e-6)
 
 
 def test_path_pass_options_load_without_effect_and_say_so(capfd):

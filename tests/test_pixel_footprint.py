@@ -156,7 +156,8 @@ def test_checkerboard_area_filters_the_pixel(rng):
 def test_products_of_varying_textures_keep_the_sample_footprint(rng):
     """A pixel's average of a product is not the product of the pixel's averages: inside a
     composite that multiplies spatially varying values (pbrt_scale of two images, pbrt_mix
-    with a varying amount and a varying end, a checkerboard with a varying tex1) the textures
+    with a varying amount and a varying end, a checkerboard with a varying tex1, dots with a
+    varying inside) the textures
     keep the sample's footprint — the 1-spp image equals footprint="sample"'s exactly (same
     seed, same rays) — where the pixel averages used to be multiplied (a user trial: two box
     images in pbrt_scale 42% darker than the reference on a grazing plane's far rows, at any
@@ -166,7 +167,8 @@ def test_products_of_varying_textures_keep_the_sample_footprint(rng):
     checks = {'type': 'pbrt_checkerboard', 'aamode': 'area', 'uscale': 6.0, 'vscale': 6.0}
     products = [{'type': 'pbrt_scale', 'tex': a, 'scale': b},
                 {'type': 'pbrt_mix', 'tex1': a, 'tex2': b, 'amount': c},
-                {**checks, 'tex1': a, 'tex2': 0.2}]
+                {**checks, 'tex1': a, 'tex2': 0.2},
+                {'type': 'pbrt_dots', 'inside': a, 'outside': 0.3, 'uscale': 8.0, 'vscale': 8.0}]
     linear = [{'type': 'pbrt_scale', 'tex': a, 'scale': 0.5},
               {'type': 'pbrt_mix', 'tex1': 0.1, 'tex2': 0.9, 'amount': b},
               {**checks, 'tex1': 0.1, 'tex2': 0.9}]
@@ -181,6 +183,14 @@ def test_products_of_varying_textures_keep_the_sample_footprint(rng):
         else:
             other = np.array(mi.render(scene, spp=1, seed=2))
             assert np.abs(one - other)[mask].max() < 1e-4
+    # on a Gaussian film a box texture inside a product does not make the render draw its
+    # camera samples per pixel from the film's filter (only a texture that filters the film's
+    # kernel needs that; the shared sample offsets alias silhouettes and count each sample in
+    # one pixel): the render is footprint="sample"'s, splatted by the film (it was not)
+    scene = mi.load_dict(scene_dict(products[0], rfilter='gaussian'))
+    sample = mi.load_dict(scene_dict(products[0], footprint='sample', rfilter='gaussian'))
+    np.testing.assert_array_equal(np.array(mi.render(scene, spp=4, seed=1)),
+                                  np.array(mi.render(sample, spp=4, seed=1)))
 
 
 def test_pixel_footprint_errors(rng):
