@@ -169,6 +169,7 @@ def _rec709(chroma) -> bool:
 
 
 def is_openexr(path: str) -> bool:
+    """Does the file begin with OpenEXR's magic number (whatever its name)?"""
     with open(path, 'rb') as f:
         return f.read(4) == EXR_MAGIC
 
