@@ -115,6 +115,10 @@ def test_pdf_position_is_proportional_to_eval(filt, wrap, rng):
     assert np.all(pdf[value == 0] == 0) and np.any(value == 0)
     outside = mi.Point2f([-0.01, 1.01, 0.5, 0.5], [0.5, 0.5, -0.2, 1.3])
     assert np.all(A(tex.pdf_position(outside)) == 0)
+    # the closed square's edges are inside: a constant image has density 1 there too
+    edges = mi.Point2f([0, 1, 0.5, 0.5, 0, 1], [0.5, 0.5, 0, 1, 0, 1])
+    flat = imagemap(np.ones((5, 6, 3)), filter=filt, wrap=wrap, uscale=2, vscale=3)
+    np.testing.assert_allclose(A(flat.pdf_position(edges)), 1, rtol=1e-6)
 
 
 @pytest.mark.parametrize('filt,wrap', [('bilinear', 'repeat'), ('bilinear', 'black'),
