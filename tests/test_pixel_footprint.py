@@ -158,8 +158,11 @@ def test_products_of_varying_textures_keep_the_sample_footprint(rng):
     composite that multiplies spatially varying values (pbrt_scale of two images, pbrt_mix
     with a varying amount and a varying end, a checkerboard with a varying tex1, dots with a
     varying inside) the textures
-    keep the sample's footprint — the 1-spp image equals footprint="sample"'s exactly (same
-    seed, same rays) — where the pixel averages used to be multiplied (a user trial: two box
+    keep the sample's footprint — the 1-spp image equals footprint="sample"'s (same seed; up to
+    the box film's camera samples kept 1e-3 pixel inside their pixel under pixel footprints,
+    which moves a few hits onto other texels: ≤ 4e-4 in a trial, 0 here; tolerance 1e-3, where
+    the old code was up to 0.15 off, 0.025 on average) — where the pixel averages used to be
+    multiplied (a user trial: two box
     images in pbrt_scale 42% darker than the reference on a grazing plane's far rows, at any
     spp). Where the composite is linear in the one varying texture (a constant scale, constant
     ends, constant checks) pixel footprints stay: two 1-spp seeds agree to < 1e-4 there."""
@@ -179,7 +182,8 @@ def test_products_of_varying_textures_keep_the_sample_footprint(rng):
         one = np.array(mi.render(scene, spp=1, seed=1))
         if tex in products:
             sample = mi.load_dict(scene_dict(tex, footprint='sample'))
-            np.testing.assert_array_equal(one, np.array(mi.render(sample, spp=1, seed=1)))
+            np.testing.assert_allclose(one, np.array(mi.render(sample, spp=1, seed=1)),
+                                       rtol=0, atol=1e-3)
         else:
             other = np.array(mi.render(scene, spp=1, seed=2))
             assert np.abs(one - other)[mask].max() < 1e-4
