@@ -127,12 +127,17 @@ def output_paths(out_path: str) -> tuple[str, str]:
     return out_path, out_path[:-4] + '.png'
 
 
-def check_writable(path: str) -> None:
+def check_writable(path: str) -> list[str]:
     """Can ``path`` be written (atomically: a file created in its folder, renamed over it)?
-    Missing folders are created here, before rendering; a probe file is created and removed."""
+    Missing folders are created here, before rendering; a probe file is created and removed.
+    Returns the folders it created (innermost first: :func:`remove_empty`)."""
     if os.path.isdir(path):
         raise RenderError(f'cannot write "{path}": it is a directory')
     folder = os.path.dirname(os.path.abspath(path))
+    created, up = [], folder
+    while not os.path.lexists(up) and os.path.dirname(up) != up:
+        created.append(up)
+        up = os.path.dirname(up)
     probe = None
     try:
         os.makedirs(folder, exist_ok=True)
@@ -149,6 +154,17 @@ def check_writable(path: str) -> None:
             os.unlink(probe)
     if os.path.exists(path) and not os.access(path, os.W_OK):
         raise RenderError(f'cannot write "{path}": the file exists and is read-only')
+    return created
+
+
+def remove_empty(folders) -> None:
+    """Remove those of ``folders`` (innermost first) that are still empty: what
+    :func:`check_writable` created for a render that then failed."""
+    for folder in folders:
+        try:
+            os.rmdir(folder)
+        except OSError:             # not empty, or gone: keep going outwards
+            pass
 
 
 def check_not_inputs(paths, inputs: set[str]) -> None:
@@ -252,10 +268,6 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     """Render ``scene_path`` to ``out_path`` (EXR) and a PNG beside it; returns timing info.
     ``params``: values for the scene's ``$name`` parameters (over its ``<default>`` values), as
     Mitsuba's ``-D name=value``."""
-    import mitsuba as mi
-
-    import mitsuba_pbrt_tex as mpt
-
     stream = stream or sys.stderr
     if spp is not None and int(spp) < 1:
         raise RenderError(f'--spp must be >= 1, got {spp}')
@@ -267,8 +279,24 @@ def render_file(scene_path: str, out_path: str, spp: int | None = None,
     if not os.path.isfile(scene_path):
         raise RenderError(f'scene "{scene_path}" does not exist')
     exr_path, png_path = output_paths(out_path)
+    created = []
     for p in (exr_path, png_path):          # before anything slow: a render must not be lost
-        check_writable(p)
+        created += check_writable(p)
+    try:
+        return _load_and_render(scene_path, exr_path, png_path, spp, variant, progress, stream,
+                                params)
+    except BaseException:
+        remove_empty(created)               # a failed render leaves no folder behind
+        raise
+
+
+def _load_and_render(scene_path, exr_path, png_path, spp, variant, progress, stream,
+                     params) -> dict:
+    """:func:`render_file` once the outputs are known to be writable."""
+    import mitsuba as mi
+
+    import mitsuba_pbrt_tex as mpt
+
     _set_variant(variant)
     mpt.register()
     params = dict(params or {})

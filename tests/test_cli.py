@@ -144,6 +144,18 @@ def test_render_sets_scene_parameters_and_protects_what_they_name(small_scene, t
     assert '(20x24, 1 spp' in r.stdout
     r = cli('render', str(small_scene), '-o', str(out), '-D', 'nonsense=3', check=False)
     assert r.returncode == 2 and 'unused parameters' in r.stderr and 'nonsense' in r.stderr
+    # the output's missing folders are created before the scene loads (a render must not be
+    # lost to an unwritable output), and removed again when it then fails (a user trial found
+    # them left behind, empty); a folder that holds something is kept
+    r = cli('render', str(small_scene), '-o', str(tmp_path / 'new' / 'deeper' / 'out.exr'),
+            '-D', 'nonsense=3', check=False)
+    assert r.returncode == 2 and not (tmp_path / 'new').exists()
+    (tmp_path / 'kept').mkdir()
+    (tmp_path / 'kept' / 'mine.txt').write_text('a file of the user')
+    r = cli('render', str(small_scene), '-o', str(tmp_path / 'kept' / 'sub' / 'out.exr'),
+            '-D', 'nonsense=3', check=False)
+    assert r.returncode == 2 and not (tmp_path / 'kept' / 'sub').exists()
+    assert (tmp_path / 'kept' / 'mine.txt').read_text() == 'a file of the user'
     r = cli('render', str(small_scene), '-o', str(out), '-D', 'w', check=False)
     assert r.returncode == 2 and 'argument -D: expected NAME=VALUE' in r.stderr
     # Mitsuba's film takes a width of 0; Dr.Jit then failed with an internal size error
