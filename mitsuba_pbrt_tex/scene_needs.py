@@ -82,9 +82,11 @@ class SceneCache:
                    uses_differentials(n)]
         delta = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
         specular = any(int(n.flags()) & delta for n in nodes if isinstance(n, mi.BSDF))
-        direct = pixel_readers(nodes)
-        needs = SceneNeeds(bool(readers), specular, reader_shapes(scene, readers),
-                           any(filters_film_kernel(t) for t in readers if id(t) in direct))
+        kernel = [t for t in readers if filters_film_kernel(t)]
+        if kernel:                  # (the walk over every object only where it can matter)
+            direct = pixel_readers(nodes)
+            kernel = [t for t in kernel if id(t) in direct]
+        needs = SceneNeeds(bool(readers), specular, reader_shapes(scene, readers), bool(kernel))
         self._scene = (shapes, readers, needs)
         return needs
 

@@ -223,9 +223,10 @@ class PbrtTexture:
     def _lookup(self, si, kind: Kind, active):
         """:meth:`evaluate` (without a footprint: :meth:`read_without_footprint`; its children
         with the sample's: :meth:`multiplies_varying`), or within
-        :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups` — where a BSDF's ``eval`` and ``sample`` ask the same interaction (the same JIT variables)
-        — the first query's value on its lanes and :meth:`evaluate` only on the lanes it did not
-        cover, in a symbolic branch (packets with none skip it)."""
+        :func:`~mitsuba_pbrt_tex.render_scope.shared_lookups` — where a BSDF's ``eval`` and
+        ``sample`` ask the same interaction (the same JIT variables) — the first query's value
+        on its lanes and :meth:`evaluate` only on the lanes it did not cover, in a symbolic
+        branch (packets with none skip it)."""
         if self._without_footprint:
             with render_scope.unpublished():
                 return self.evaluate(without_differentials(si), kind, active)
