@@ -64,6 +64,20 @@ def _value_text(props: mi.Properties, name: str) -> str:
     return f'a {kind} value'
 
 
+#: pbrt-v3 parameters that pbrt-v4 (whose names the plugins take) renamed: the unknown-parameter
+#: error says what to write instead.
+PBRT_V3_NAMES = {
+    ('pbrt_imagemap', 'gamma'): '"gamma" is pbrt-v3\'s: pbrt-v4 (and this plugin) take '
+                                'encoding="sRGB", "linear" or "gamma G"',
+    ('pbrt_imagemap', 'trilinear'): '"trilinear" is pbrt-v3\'s: pbrt-v4 (and this plugin) take '
+                                    'filter="trilinear"',
+    ('pbrt_scale', 'tex1'): '"tex1"/"tex2" are pbrt-v3\'s: pbrt-v4 (and this plugin) take '
+                            '"tex" and "scale"',
+    ('pbrt_scale', 'tex2'): '"tex1"/"tex2" are pbrt-v3\'s: pbrt-v4 (and this plugin) take '
+                            '"tex" and "scale"',
+}
+
+
 class Params:
     """Typed access to one plugin's properties; remembers what it read."""
 
@@ -287,11 +301,15 @@ class Params:
 
     # ------------------------------------------------------------------ end
     def finish(self) -> None:
-        """Reject unknown parameters, then mark everything as read for Mitsuba."""
+        """Reject unknown parameters (with pbrt-v4's name for a pbrt-v3 one:
+        :data:`PBRT_V3_NAMES`), then mark everything as read for Mitsuba."""
         unknown = [k for k in self.props.keys() if k not in self.known]
         if unknown:
             known = ', '.join(self.known) if self.known else '(none)'
+            hints = ''.join(f'; {h}' for h in dict.fromkeys(
+                PBRT_V3_NAMES[self.plugin, u] for u in unknown if (self.plugin, u) in PBRT_V3_NAMES))
             raise PluginError(f'{self.plugin}: unknown parameter{"s" if len(unknown) > 1 else ""} '
-                              f'{", ".join(repr(u) for u in unknown)}; accepted parameters: {known}')
+                              f'{", ".join(repr(u) for u in unknown)}; accepted parameters: '
+                              f'{known}{hints}')
         for k in self.props.keys():
             self.props.mark_queried(k)

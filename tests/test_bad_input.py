@@ -885,6 +885,25 @@ sys.exit(main(sys.argv[1:]))
 '''
 
 
+@pytest.mark.parametrize('name, params, words', [
+    ('pbrt_imagemap', {'gamma': True},
+     ["unknown parameter 'gamma'", 'encoding="sRGB", "linear" or "gamma G"']),
+    ('pbrt_imagemap', {'trilinear': True}, ["unknown parameter 'trilinear'", 'filter="trilinear"']),
+    ('pbrt_scale', {'tex1': 0.5, 'tex2': 2.0},
+     ["unknown parameters 'tex1', 'tex2'", 'take "tex" and "scale"'])])
+def test_pbrt_v3_names_get_pbrt_v4s(name, params, words):
+    """A parameter pbrt-v4 renamed, given by its pbrt-v3 name, is unknown — and the error says
+    what pbrt-v4 (whose names the plugins take) calls it (a pbrt-v4 port trial asked for it);
+    said once for two such names."""
+    if name == 'pbrt_imagemap':
+        params = {'filename': os.path.join(DATA, 'srgb_11x9.png'), **params}
+    with pytest.raises(RuntimeError) as e:
+        mi.load_dict({'type': name, **params})
+    for w in words:
+        assert w in str(e.value), str(e.value)[-300:]
+    assert str(e.value).count('pbrt-v3') == 1
+
+
 def test_sigterm_while_writing_leaves_no_temporary_file(scenes):
     out = scenes / 'sig' / 'img.exr'
     proc = subprocess.Popen([sys.executable, '-c', SLOW_WRITER, 'render', f'{scenes}/ok.xml',
@@ -903,7 +922,8 @@ def test_sigterm_while_writing_leaves_no_temporary_file(scenes):
             proc.kill()
     assert proc.returncode == 143, err
     assert 'terminated (SIGTERM)' in err and 'Traceback' not in err
-    assert list(out.parent.iterdir()) == []
+    # no temporary file left, and the folder the render created for its output is gone too
+    assert not out.parent.exists()
 
 
 # ---------------------------------------------------------------------------------- memory
