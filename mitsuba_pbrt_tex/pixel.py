@@ -125,12 +125,23 @@ def _film_position(sensor, si):
     to_world = sensor.world_transform()
     cam_o = mi.Point3f(to_world.translation())
     forward = dr.normalize(mi.Vector3f(to_world @ mi.Vector3f(0, 0, 1)))
-    wi = si.to_world(si.wi)
     dist = dr.norm(p - cam_o)
-    # a camera ray starts where its direction meets the near clipping plane
-    origin = p + si.t * wi
-    expected = cam_o - wi * (float(sensor.near_clip()) / dr.dot(forward, -wi))
-    camera_hit = si.is_valid() & (dr.norm(origin - expected) <= CAMERA_TOLERANCE * dist)
+
+    def from_camera(wi):
+        """Did a ray towards ``-wi`` start on the camera's near clipping plane, where a camera
+        ray starts (its direction meeting that plane), and end here?"""
+        origin = p + si.t * wi
+        expected = cam_o - wi * (float(sensor.near_clip()) / dr.dot(forward, -wi))
+        return dr.norm(origin - expected) <= CAMERA_TOLERANCE * dist
+
+    # the direction the ray came from — or its mirror image in the tangent plane: a ``twosided``
+    # BSDF hands its nested BSDF (and so the textures) a back-side hit with the local wi's z
+    # negated (a plane with flip_normals seen from its back lost its pixel footprints: a trial)
+    wi = si.to_world(si.wi)
+    mirrored = si.to_world(mi.Vector3f(si.wi.x, si.wi.y, -si.wi.z))
+    direct, back = from_camera(wi), from_camera(mirrored)
+    wi = dr.select(direct, wi, mirrored)
+    camera_hit = si.is_valid() & (direct | back)
     return camera_hit, _film_uv(sensor, -wi, si.time, camera_hit)
 
 
