@@ -114,8 +114,9 @@ class _WorldToTexture:
         return mi.Vector3f(v) if self.identity else mi.Transform4f(self.scalar) @ mi.Vector3f(v)
 
 
-#: Entries of a uv mapping's 2×2 matrix below this fraction of its largest are rounding (a 90°
-#: rotation leaves cos = -4.4e-8): :func:`_without_rounding` makes them 0.
+#: Entries of a uv mapping's 2×2 matrix below this fraction of the largest in their row and
+#: column are rounding (a 90° rotation leaves cos = -4.4e-8): :func:`_without_rounding` makes
+#: them 0.
 ROUNDING = 1e-6
 
 
@@ -124,9 +125,12 @@ def _without_rounding(a):
     rotation by 90° maps u onto t alone, as it means to — and as the emitter sampling's density
     (:mod:`mitsuba_pbrt_tex.sampling`, which samples axis by axis) assumes: with the rounding
     term left in, a texture's value and the density at one uv were read a few thousandths of a
-    texel apart (a sparse light's weights 0.70–1.17× their median)."""
-    big = max(abs(x) for row in a for x in row)
-    return [[0.0 if abs(x) < ROUNDING * big else x for x in row] for row in a]
+    texel apart (a sparse light's weights 0.70–1.17× their median). Compared within the entry's
+    row and column, so that very different scales (``uscale`` 1e7, ``vscale`` 1) stay."""
+    def big(r, c):
+        return max(abs(a[r][0]), abs(a[r][1]), abs(a[0][c]), abs(a[1][c]))
+    return [[0.0 if abs(a[r][c]) < ROUNDING * big(r, c) else a[r][c] for c in range(2)]
+            for r in range(2)]
 
 
 class UVMapping:

@@ -36,7 +36,7 @@ class PluginError(ValueError):
 _TYPE_NAMES = {
     'Float': 'float', 'Integer': 'integer', 'Bool': 'boolean', 'String': 'string',
     'Color': 'rgb', 'Spectrum': 'spectrum', 'Transform': 'transform', 'Vector': 'vector',
-    'Object': 'nested object', 'Tensor': 'tensor',
+    'Object': 'nested object', 'Tensor': 'tensor', 'Any': 'Python object',
 }
 
 
@@ -243,7 +243,11 @@ class Params:
         if key is None:
             return None
         if self._kind(key) != 'Transform':
-            raise self.error(key, f'expected a transform, got {_a_type(self.props, key)}')
+            got = _a_type(self.props, key)
+            if 'Projective' in type(self.props[key]).__name__:
+                got = f'a projective transform ({type(self.props[key]).__name__})'
+            raise self.error(key, f'expected an affine transform (mi.ScalarTransform4f, or '
+                                  f'<transform> in XML), got {got}')
         m = self.props[key].matrix
         values = [float(m[i][j]) for i in range(4) for j in range(4)]
         if not all(math.isfinite(x) for x in values):

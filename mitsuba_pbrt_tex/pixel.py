@@ -136,12 +136,17 @@ def _film_position(sensor, si):
 
     # the direction the ray came from — or its mirror image in the tangent plane: a ``twosided``
     # BSDF hands its nested BSDF (and so the textures) a back-side hit with the local wi's z
-    # negated (a plane with flip_normals seen from its back lost its pixel footprints: a trial)
+    # negated (a plane with flip_normals seen from its back lost its pixel footprints: a
+    # trial), in the shading frame of the hit — which a normal or bump map inside the
+    # ``twosided`` then replaces: there the mirror image in the geometric tangent plane (exact
+    # where the shading frame was the geometric one; a smooth-shaded mesh's back side keeps
+    # the sample's footprint under such a map)
     wi = si.to_world(si.wi)
-    mirrored = si.to_world(mi.Vector3f(si.wi.x, si.wi.y, -si.wi.z))
-    direct, back = from_camera(wi), from_camera(mirrored)
-    wi = dr.select(direct, wi, mirrored)
-    camera_hit = si.is_valid() & (direct | back)
+    n = mi.Vector3f(si.n)
+    for mirrored in (si.to_world(mi.Vector3f(si.wi.x, si.wi.y, -si.wi.z)),
+                     wi - 2 * dr.dot(wi, n) * n):
+        wi = dr.select(from_camera(wi), wi, mirrored)
+    camera_hit = si.is_valid() & from_camera(wi)
     return camera_hit, _film_uv(sensor, -wi, si.time, camera_hit)
 
 

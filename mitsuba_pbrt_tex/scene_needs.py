@@ -18,6 +18,7 @@ names, so that no later object can take their indices.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import drjit as dr
@@ -104,10 +105,11 @@ class SceneCache:
         return camera
 
 
-def children(obj) -> dict:
-    """The objects and values that ``obj.traverse`` puts, by name (its direct children: the
-    ``normalmap`` and ``nested_bsdf`` of a ``normalmap`` BSDF, a composite's nested textures)."""
-    class Collect(mi.TraversalCallback):          # (the current variant's base class)
+@functools.lru_cache(maxsize=None)
+def _collector(variant: str) -> type:
+    """A traversal callback class of ``variant``'s ``mi.TraversalCallback`` that keeps what it
+    is given (made once per variant: a class per call cost 10× the traversal)."""
+    class Collect(mi.TraversalCallback):
         def __init__(self):
             super().__init__()
             self.values = {}
@@ -115,7 +117,13 @@ def children(obj) -> dict:
         def put(self, name, value, flags, cpptype=None):
             self.values[name] = value
 
-    collect = Collect()
+    return Collect
+
+
+def children(obj) -> dict:
+    """The objects and values that ``obj.traverse`` puts, by name (its direct children: the
+    ``normalmap`` and ``nested_bsdf`` of a ``normalmap`` BSDF, a composite's nested textures)."""
+    collect = _collector(mi.variant())()
     obj.traverse(collect)
     return collect.values
 

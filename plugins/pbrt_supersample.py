@@ -22,6 +22,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_pbrt_tex.differentials import with_shifting_fields
 from mitsuba_pbrt_tex.texture import PbrtTexture, nested_mean
 
 #: 256 x 256 lookups per evaluation at most (the loop's counter and n² must stay far inside
@@ -71,7 +72,13 @@ class Plugin(PbrtTexture):
         ctx = self.context(si)          # sanitized partials; empty fields of a bare si are 0
         duv_dx = mi.Vector2f(_footprint(ctx.dudx), _footprint(ctx.dvdx))
         duv_dy = mi.Vector2f(_footprint(ctx.dudy), _footprint(ctx.dvdy))
-        dp_dx, dp_dy, uv, p = ctx.dpdx, ctx.dpdy, ctx.uv, ctx.p
+        # p's offsets from the limited uv partials, as the context derives its own: 3D textures
+        # get the same bounded footprint (its 1e8-wide one put fbm's sub-samples 5e7 units out)
+        shifting = with_shifting_fields(si)
+        dp_dx = dr.fma(shifting.dp_du, duv_dx.x, shifting.dp_dv * duv_dx.y)
+        dp_dy = dr.fma(shifting.dp_du, duv_dy.x, shifting.dp_dv * duv_dy.y)
+        uv, p = ctx.uv, ctx.p
+        weight = 1.0 / (n * n)          # each term scaled: a sum of n² values near 3e38 is inf
 
         def cond(k, acc):
             return k < n * n
@@ -84,12 +91,12 @@ class Plugin(PbrtTexture):
             sub.p = mi.Point3f(_coordinate(p + a * dp_dx + b * dp_dy, P_LIMIT))
             sub.duv_dx = duv_dx / n
             sub.duv_dy = duv_dy / n
-            return k + 1, acc + kind.nested(tex, sub, active)
+            return k + 1, dr.fma(kind.nested(tex, sub, active), weight, acc)
 
         zero = kind.nested(tex, si, mi.Bool(False)) * 0
         _, acc = dr.while_loop((mi.UInt32(0), zero), cond, body, max_iterations=-1,
                                label='pbrt_supersample')
-        return acc / (n * n)
+        return acc
 
     def mean(self):
         return nested_mean(self._nested['texture'])

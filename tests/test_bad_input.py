@@ -102,6 +102,9 @@ ERRORS = [
     ('pbrt_path', {'silhouette_spp': -1}, ['"silhouette_spp"', 'must be >= 0']),
     ('pbrt_path', '<string name="spp_scale" value="-1"/>',
      ['"spp_scale"', 'unknown value "-1"', 'pbrt, none, or a number > 0']),
+    # a projective transform reached the plugin as "a any" (a trial)
+    ('pbrt_fbm', {'to_world': mi.ScalarProjectiveTransform4f().perspective(60, 0.1, 10)},
+     ['"to_world"', 'expected an affine transform', 'got a projective transform']),
     # file names that are not files (an empty name "did not exist" as the scene's folder)
     ('pbrt_imagemap', {'filename': ''}, ['"filename"', 'value "" is empty', 'image file']),
     ('pbrt_imagemap', {'filename': DATA}, ['"filename"', f'"{DATA}" is a directory',

@@ -77,6 +77,23 @@ def test_uv_mapping_formula_and_derivatives(rng):
     np.testing.assert_allclose(A(tc.dtdy), 3 * duv[:, 3], rtol=1e-6)
 
 
+def test_uv_mapping_drops_only_the_rounding_of_rotations():
+    """Entries below 1e-6 of the largest in their row and column are rounding and become 0
+    (a 90° rotation's cos = -4e-8, whatever the scale on either side), while very different
+    scales stay: a mapping's whole-matrix comparison had made vscale 1 next to uscale 1e7 a 0
+    (every lookup along v then read v = 0)."""
+    T = mi.ScalarTransform4f
+    assert UVMapping(1e7, 1.0).a == [[1e7, 0.0], [0.0, 1.0]]
+    assert UVMapping(2000.0, 1e-3).a == [[2000.0, 0.0], [0.0, 1e-3]]
+    for to_uv in (T().scale([1e6, 1, 1]) @ T().rotate([0, 0, 1], 90),
+                  T().rotate([0, 0, 1], 90) @ T().scale([1e6, 1, 1])):
+        a = UVMapping(to_uv=to_uv).a
+        assert a[0][0] == 0 and a[1][1] == 0 and a[0][1] != 0 and a[1][0] != 0, a
+    shear = UVMapping(to_uv=T(mi.ScalarMatrix4f(1, 1e-3, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0,
+                                                0, 0, 0, 1))).a
+    assert shear[0][1] == pytest.approx(1e-3)           # a small but real shear stays
+
+
 def test_uv_mapping_composes_to_uv_first(rng):
     """(s, t) = S · to_uv · (u, v); derivatives follow the same 2x2 matrix."""
     to_uv = mi.ScalarTransform4f().translate([0.1, 0.2, 0]) @ mi.ScalarTransform4f().rotate([0, 0, 1], 30)

@@ -661,6 +661,40 @@ def test_supersample_of_mitsuba_checkerboard_averages(rng):
     np.testing.assert_allclose(got, 0.5, atol=0.02)
 
 
+def test_supersample_of_values_near_float32s_maximum_stays_finite():
+    """A nested value of 3e38 (accepted at construction and through params.update) averages to
+    itself: the n² values were summed first and the sum overflowed to inf for n² > 1 (a trial:
+    3e38 with 4 or 16 samples, and 1e38 with 4, gave inf). Tolerance 4e-3: a float32 sum of
+    n² terms is within n²·2^-24 of exact (65536 terms: 3.9e-3; measured 3.9e-4)."""
+    si = make_si(np.array([[0.3, 0.6]]), np.array([[0.1, 0.0]]), np.array([[0.0, 0.1]]))
+    for inner in ({'type': 'pbrt_constant', 'value': 3e38},
+                  {'type': 'pbrt_bilerp', 'v00': 3e38, 'v01': 3e38, 'v10': 3e38, 'v11': 3e38}):
+        for samples in (1, 4, 16, 65536):
+            ss = mi.load_dict({'type': 'pbrt_supersample', 'samples': samples, 'texture': inner})
+            np.testing.assert_allclose(A(ss.eval_1(si)), 3e38, rtol=4e-3)
+            np.testing.assert_allclose(A(ss.eval_3(si)), 3e38, rtol=4e-3)
+
+
+def test_supersample_footprint_limit_holds_for_3d_textures(rng):
+    """The sub-samples spread over at most 1024 texture units per differential (docs) for
+    3D textures too: their positions came from the unlimited partials (a footprint of 1e6 put
+    fbm's sub-samples 5e5 units out). A footprint of 1e4 or 1e6 in u gives the value of a
+    footprint of exactly 1024 (p = (u, v, 0) on this plane: dp/du = x, dp/dv = y)."""
+    uv = rng.uniform(0, 1, (20, 2))
+    fbm = {'type': 'pbrt_fbm', 'aamode': 'none'}
+    ss = mi.load_dict({'type': 'pbrt_supersample', 'samples': 16, 'texture': fbm})
+
+    def value(du):
+        si = make_si(uv, np.tile([du, 0.0], (20, 1)), np.tile([0.0, 0.5], (20, 1)),
+                     p=np.concatenate([uv, np.zeros((20, 1))], 1), dp_du=[1, 0, 0],
+                     dp_dv=[0, 1, 0])
+        return A(ss.eval_1(si))
+
+    limited = value(1024.0)
+    for du in (1e4, 1e6):
+        np.testing.assert_allclose(value(du), limited, atol=1e-6)
+
+
 def test_supersample_errors():
     with pytest.raises(RuntimeError, match='pbrt_supersample: parameter "samples": must be a perfect square'):
         mi.load_dict({'type': 'pbrt_supersample', 'texture': {'type': 'pbrt_dots'}, 'samples': 8})
