@@ -17,7 +17,7 @@ uv partials of every hit before its BSDF is evaluated or sampled.
 | silhouette_spp | integer | 0 | `footprint="pixel"` (0 to 65536): this many more paths in each pixel whose centre and corner rays disagree about the surface they hit (silhouettes, the horizon), averaged with the sample's; with a `gaussian` film through offsets drawn from the filter (corners ±1.5 pixels), in scenes with a texture that filters the film's kernel (`pbrt_imagemap` `box`); primal renders only; no effect where pixel footprints do not apply | no |
 | samples_per_pass | integer | (none) | accepted (1 or more) as Mitsuba's `path` accepts it, so that its scenes load, but without effect (with a warning): a render is one pass, as `prb`'s | no |
 | timeout | float | (none) | accepted as Mitsuba's `path` accepts it, without effect (with a warning): no time limit, as `prb` | no |
-| aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (the uv partials the textures read at the first hit, scaled by `spp_scale` as they are; 0 where no texture reads them or `texture_differentials` is false; 2 channels each) | no |
+| aovs | string | (none) | comma-separated extra outputs: `duv_dx`, `duv_dy` (the uv partials at the first hit, scaled by `spp_scale`, as a texture there reads them — also on a shape without a texture, e.g. a mirror: the partials of its own uv, not those a texture seen in it gets; 0 in a scene where no texture reads them or with `texture_differentials` false; 2 channels each) | no |
 
 Where the differentials come from (:mod:`mitsuba_pbrt_tex.raydiff`): at camera hits the sensor's
 ray differentials (one pixel) scaled by ``spp_scale``, intersected with the tangent plane (rays
