@@ -114,23 +114,28 @@ class _WorldToTexture:
         return mi.Vector3f(v) if self.identity else mi.Transform4f(self.scalar) @ mi.Vector3f(v)
 
 
-#: Entries of a uv mapping's 2×2 matrix below this fraction of the largest in their row and
-#: column are rounding (a 90° rotation leaves cos = -4.4e-8): :func:`_without_rounding` makes
-#: them 0.
+#: A uv mapping's 2×2 matrix maps u and v each onto one axis when the product of its other
+#: diagonal's entries is below this fraction of its own: :func:`_without_rounding`.
 ROUNDING = 1e-6
 
 
 def _without_rounding(a):
-    """The 2×2 matrix ``a`` with the entries that are rounding (:data:`ROUNDING`) set to 0: a
-    rotation by 90° maps u onto t alone, as it means to — and as the emitter sampling's density
-    (:mod:`mitsuba_pbrt_tex.sampling`, which samples axis by axis) assumes: with the rounding
-    term left in, a texture's value and the density at one uv were read a few thousandths of a
-    texel apart (a sparse light's weights 0.70–1.17× their median). Compared within the entry's
-    row and column, so that very different scales (``uscale`` 1e7, ``vscale`` 1) stay."""
-    def big(r, c):
-        return max(abs(a[r][0]), abs(a[r][1]), abs(a[0][c]), abs(a[1][c]))
-    return [[0.0 if abs(a[r][c]) < ROUNDING * big(r, c) else a[r][c] for c in range(2)]
-            for r in range(2)]
+    """The 2×2 matrix ``a`` with rounding set to 0: where one diagonal's product is below
+    ROUNDING² of the other's, its entries are rounding of a rotation by a multiple of 90° (cos
+    90° = -4.4e-8), and the matrix maps u and v each onto one axis, as it means to — and as the
+    emitter sampling's density (:mod:`mitsuba_pbrt_tex.sampling`, which samples axis by axis)
+    assumes: with the rounding left in, a texture's value and the density at one uv were read a
+    few thousandths of a texel apart (a sparse light's weights 0.70–1.17× their median). A test
+    of products does not change when rows or columns are scaled: ``uscale`` 1e7 next to
+    ``vscale`` 1, before or after any rotation, keeps both rows (entry by entry, a comparison
+    with the largest had zeroed v's row); a rotation's rounding leaves both entries non-zero,
+    so a diagonal with an exact 0 (a shear) is kept."""
+    (p, q), (r, t) = a
+    if 0 not in (p, t) and abs(p * t) < ROUNDING ** 2 * abs(q * r):
+        return [[0.0, q], [r, 0.0]]
+    if 0 not in (q, r) and abs(q * r) < ROUNDING ** 2 * abs(p * t):
+        return [[p, 0.0], [0.0, t]]
+    return [list(row) for row in a]
 
 
 class UVMapping:

@@ -78,13 +78,19 @@ def test_uv_mapping_formula_and_derivatives(rng):
 
 
 def test_uv_mapping_drops_only_the_rounding_of_rotations():
-    """Entries below 1e-6 of the largest in their row and column are rounding and become 0
-    (a 90° rotation's cos = -4e-8, whatever the scale on either side), while very different
-    scales stay: a mapping's whole-matrix comparison had made vscale 1 next to uscale 1e7 a 0
-    (every lookup along v then read v = 0)."""
+    """A rotation by a multiple of 90° leaves rounding (cos = -4e-8) on one diagonal, whose
+    product is then below 1e-12 of the other's: that diagonal becomes 0, whatever the scale on
+    either side; very different scales stay, also with other rotations — comparisons with the
+    largest entry had made vscale 1 next to uscale 1e7 a 0 (every lookup along v then read
+    v = 0), and row/column ones did so again after a 30° rotation (a review)."""
     T = mi.ScalarTransform4f
     assert UVMapping(1e7, 1.0).a == [[1e7, 0.0], [0.0, 1.0]]
     assert UVMapping(2000.0, 1e-3).a == [[2000.0, 0.0], [0.0, 1e-3]]
+    for to_uv in (T().rotate([0, 0, 1], 30), T().rotate([0, 0, 1], 30) @ T().scale([1, 1e7, 1])):
+        a = UVMapping(1e7, 1.0, to_uv=to_uv).a
+        assert all(x != 0 for row in a for x in row), a
+    a = UVMapping(to_uv=T().rotate([0, 0, 1], 180)).a
+    assert a[0][1] == 0 and a[1][0] == 0 and a[0][0] == pytest.approx(-1), a
     for to_uv in (T().scale([1e6, 1, 1]) @ T().rotate([0, 0, 1], 90),
                   T().rotate([0, 0, 1], 90) @ T().scale([1e6, 1, 1])):
         a = UVMapping(to_uv=to_uv).a
