@@ -213,42 +213,45 @@ def _xyz_to_rgb(xyz: np.ndarray) -> np.ndarray:
 
 def _read_exr(path: str) -> np.ndarray | None:
     """Texels of an OpenEXR file as float32 (H, W, 1|3); None where Mitsuba's own reader has to
-    convert the colours (non-Rec. 709 chromaticities, luminance/chroma)."""
+    convert the colours (non-Rec. 709 chromaticities, luminance/chroma). The header decides
+    which channels to read, so the pixels are decoded once."""
     import OpenEXR
     try:
-        # interleaved first: RGB(A) comes as one (H, W, 3|4) array, without the copy that
-        # stacking separate planes costs (the image's size again, at the peak of a load)
-        try:
-            with OpenEXR.File(path) as f:
-                # (read inside the block: the header reads empty once the file is closed)
-                chroma = f.header().get('chromaticities')
-                channels = {name: ch.pixels for name, ch in f.channels().items()}
-        except ValueError:
-            # channels of one group with different pixel types (float RGB with a half A, say)
-            # cannot be interleaved: read them one by one below
-            chroma, channels = None, {}
-        if _rec709(chroma):
-            for name in ('RGB', 'RGBA'):
-                if name in channels:
-                    return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)
-        del channels
-        with OpenEXR.File(path, separate_channels=True) as f:
+        with OpenEXR.File(path, header_only=True) as f:   # (empty once the file is closed)
+            names = [c.name for c in f.header().get('channels', [])]
             chroma = f.header().get('chromaticities')
-            channels = {name: ch.pixels for name, ch in f.channels().items()}
-    except Exception as e:  # the OpenEXR package raises plain exceptions for corrupt files
-        raise ImageError(f'cannot read OpenEXR file "{path}": {e}') from None
-    try:
-        found = _exr_colour_channels(channels)
+        found = _exr_colour_channels(names)
+        if found is None:
+            raise ImageError(f'has channels {sorted(names)}; expected R,G,B, X,Y,Z or Y (with '
+                             f'or without A; at the top level or in one layer, e.g. diffuse.R, '
+                             f'diffuse.G, diffuse.B)')
     except ImageError as e:
         raise ImageError(f'OpenEXR file "{path}" {e}') from None
-    if found is None:
-        raise ImageError(f'OpenEXR file "{path}" has channels {sorted(channels)}; expected '
-                         f'R,G,B, X,Y,Z or Y (with or without A; at the top level or in one '
-                         f'layer, e.g. diffuse.R, diffuse.G, diffuse.B)')
-    kind, names = found
+    except Exception as e:  # the OpenEXR package raises plain exceptions for corrupt files
+        raise ImageError(f'cannot read OpenEXR file "{path}": {e}') from None
+    kind, wanted = found
     if kind == 'YC' or (kind == 'RGB' and not _rec709(chroma)):
         return None
-    texels = np.stack([np.asarray(channels[n], dtype=np.float32) for n in names], axis=-1)
+    try:
+        if wanted == ['R', 'G', 'B']:
+            # interleaved: RGB(A) comes as one (H, W, 3|4) array, without the copy that
+            # stacking separate planes costs (the image's size again, at the peak of a load);
+            # channels of one group with different pixel types (float RGB with a half A, say)
+            # cannot be interleaved (ValueError): read one by one below
+            try:
+                with OpenEXR.File(path) as f:
+                    channels = {name: ch.pixels for name, ch in f.channels().items()}
+                for name in ('RGB', 'RGBA'):
+                    if name in channels:
+                        return np.asarray(channels.pop(name)[..., :3], dtype=np.float32)
+                del channels
+            except ValueError:
+                pass
+        with OpenEXR.File(path, separate_channels=True) as f:
+            channels = {name: f.channels()[name].pixels for name in wanted}
+    except Exception as e:
+        raise ImageError(f'cannot read OpenEXR file "{path}": {e}') from None
+    texels = np.stack([np.asarray(channels[n], dtype=np.float32) for n in wanted], axis=-1)
     return _xyz_to_rgb(texels) if kind == 'XYZ' else texels
 
 

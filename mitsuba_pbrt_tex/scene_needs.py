@@ -18,14 +18,13 @@ names, so that no later object can take their indices.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 
 from . import raydiff
-from .texture import filters_film_kernel, is_pbrt_texture, uses_differentials
+from .texture import children, filters_film_kernel, is_pbrt_texture, uses_differentials
 
 
 @dataclass(frozen=True)
@@ -103,29 +102,6 @@ class SceneCache:
             camera = raydiff.CameraFootprint(sensor)
         self._camera = (key, held, camera)
         return camera
-
-
-@functools.lru_cache(maxsize=None)
-def _collector(variant: str) -> type:
-    """A traversal callback class of ``variant``'s ``mi.TraversalCallback`` that keeps what it
-    is given (made once per variant: a class per call cost 10× the traversal)."""
-    class Collect(mi.TraversalCallback):
-        def __init__(self):
-            super().__init__()
-            self.values = {}
-
-        def put(self, name, value, flags, cpptype=None):
-            self.values[name] = value
-
-    return Collect
-
-
-def children(obj) -> dict:
-    """The objects and values that ``obj.traverse`` puts, by name (its direct children: the
-    ``normalmap`` and ``nested_bsdf`` of a ``normalmap`` BSDF, a composite's nested textures)."""
-    collect = _collector(mi.variant())()
-    obj.traverse(collect)
-    return collect.values
 
 
 def _textures_below(start) -> dict:

@@ -15,6 +15,7 @@ variant by :mod:`mitsuba_pbrt_tex.registry` (nanobind classes admit a single bas
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -356,9 +357,7 @@ class PbrtTexture:
 
     def _traversed(self) -> dict:
         """What :meth:`traverse` puts, by name (the objects themselves)."""
-        own = _Collect()
-        self.traverse(own)
-        return own.values
+        return children(self)
 
     def _settable_values(self) -> dict:
         """What ``params.update()`` can write in place: this texture's traversed values and
@@ -440,14 +439,28 @@ def install_update_rollback() -> None:
     cls.update = update
 
 
-class _Collect:
-    """A traversal callback that keeps what a texture's ``traverse`` puts, by name."""
+@functools.lru_cache(maxsize=None)
+def _collector(variant: str) -> type:
+    """A traversal callback class of ``variant``'s ``mi.TraversalCallback`` that keeps what it
+    is given (made once per variant: a class per call cost 10× the traversal)."""
+    class Collect(mi.TraversalCallback):
+        def __init__(self):
+            super().__init__()
+            self.values = {}
 
-    def __init__(self):
-        self.values = {}
+        def put(self, name, value, flags, cpptype=None):
+            self.values[name] = value
 
-    def put(self, name, value, flags=None):
-        self.values[name] = value
+    return Collect
+
+
+def children(obj) -> dict:
+    """The objects and values that ``obj.traverse`` puts, by name (its direct children: a
+    composite's nested textures and values, the ``normalmap`` and ``nested_bsdf`` of a
+    ``normalmap`` BSDF) — any Mitsuba object, ours or Mitsuba's."""
+    collect = _collector(mi.variant())()
+    obj.traverse(collect)
+    return collect.values
 
 
 def _copy(value):
